@@ -1,0 +1,164 @@
+"""Onboard runtime figures: per-frame latency of each preset (onnxruntime fp32 / int8, eager
+PyTorch), achieved GFLOP/s, and the int8 accuracy cost on a labeled test set.
+
+Latency (untrained weights with live activations; the arithmetic does not depend on them):
+
+    .venv/bin/python benchmarks/bench_runtime.py latency --presets nano tiny small \\
+        --sizes 512 1024 --threads 1 2 --runs 7
+
+Accuracy (a trained checkpoint; calibration images from a split other than the test set):
+
+    .venv/bin/python benchmarks/bench_runtime.py accuracy --checkpoint best.ckpt \\
+        --test data/test/annotations.json --calib data/val
+
+Latency is end to end per image (letterbox + network + decoding + NMS at score 0.25), batch 1,
+median and p90 over ``--runs`` calls after warm-up. GFLOP/s = conv FLOPs (2 per MAC) / median.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from lunarnav_ml.export.bench import (
+    bench_onnx,
+    bench_torch,
+    conv_flops,
+    random_detector,
+    synthetic_frame,
+)
+from lunarnav_ml.export.onnx_export import export_onnx, load_parts
+from lunarnav_ml.export.quantize import load_calibration_images, quantize_int8
+
+
+def export_pair(parts: Any, folder: Path, calib: list, size: int) -> tuple[Path, Path]:
+    """fp32 and int8 ONNX files of one detector."""
+    fp32 = export_onnx(parts, folder / f"{parts.name}.onnx", img_size=size)
+    int8 = quantize_int8(fp32, folder / f"{parts.name}_int8.onnx", calib)
+    return fp32, int8
+
+
+def latency_rows(preset: str, sizes: list[int], threads: list[int], runs: int, warmup: int,
+                 calib_dir: Path | None, torch_max_size: int) -> list[dict[str, Any]]:
+    """One row per (size, threads, runtime) for one preset."""
+    parts = random_detector(preset, img_size=min(sizes))
+    calib = (load_calibration_images(calib_dir, 16) if calib_dir
+             else [synthetic_frame(min(sizes), seed=s) for s in range(16)])
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        fp32, int8 = export_pair(parts, Path(tmp), calib, min(sizes))
+        for size in sizes:
+            gflop = conv_flops(fp32, size) / 1e9
+            for n in threads:
+                runners = {"ort-fp32": lambda s=size, n=n: bench_onnx(fp32, s, n, runs=runs,
+                                                                      warmup=warmup),
+                           "ort-int8": lambda s=size, n=n: bench_onnx(int8, s, n, runs=runs,
+                                                                      warmup=warmup)}
+                if size <= torch_max_size:
+                    runners["torch-fp32"] = lambda s=size, n=n: bench_torch(
+                        parts, s, n, runs=max(3, runs // 2), warmup=1)
+                for runtime, run in runners.items():
+                    st = run()
+                    row = {"preset": preset, "size": size, "threads": n, "runtime": runtime,
+                           "median_ms": round(st.median_ms, 1), "p90_ms": round(st.p90_ms, 1),
+                           "gflop": round(gflop, 2),
+                           "gflops_per_s": round(gflop / (st.median_ms / 1e3), 1)}
+                    print(json.dumps(row), flush=True)
+                    rows.append(row)
+    return rows
+
+
+def ratios(rows: list[dict[str, Any]]) -> list[str]:
+    """int8 vs fp32 and onnxruntime vs eager speed-ups per (preset, size, threads)."""
+    by = {(r["preset"], r["size"], r["threads"], r["runtime"]): r["median_ms"] for r in rows}
+    out = []
+    for (preset, size, n, runtime), ms in by.items():
+        if runtime != "ort-fp32":
+            continue
+        int8 = by.get((preset, size, n, "ort-int8"))
+        eager = by.get((preset, size, n, "torch-fp32"))
+        line = f"{preset:7s} {size:5d} px {n} thr: int8 {ms / int8:.2f}x faster than fp32"
+        if eager:
+            line += f"; onnxruntime {eager / ms:.2f}x faster than eager PyTorch"
+        out.append(line)
+    return out
+
+
+def markdown(rows: list[dict[str, Any]]) -> str:
+    """The rows as a markdown table."""
+    lines = ["| preset | size | threads | runtime | median ms | p90 ms | GFLOP | GFLOP/s |",
+             "|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['preset']} | {r['size']} | {r['threads']} | {r['runtime']} | "
+              f"{r['median_ms']} | {r['p90_ms']} | {r['gflop']} | {r['gflops_per_s']} |"
+              for r in rows]
+    return "\n".join(lines)
+
+
+def run_latency(args: argparse.Namespace) -> None:
+    rows = []
+    for preset in args.presets:
+        rows += latency_rows(preset, args.sizes, args.threads, args.runs, args.warmup,
+                             args.calib, args.torch_max_size)
+    print(markdown(rows))
+    print("\n".join(ratios(rows)))
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+
+
+def run_accuracy(args: argparse.Namespace) -> None:
+    """Crater AP50 of eager PyTorch, onnxruntime fp32 and int8 on one test set."""
+    from lunarnav_ml.eval.coco_metrics import coco_ap
+    from lunarnav_ml.eval.predict import predict_coco
+    from lunarnav_ml.runtime import OnnxDetector
+    from lunarnav_ml.training.api import load_detector
+
+    gt = json.loads(args.test.read_text())
+    root = args.test.parent
+    detector = load_detector(args.checkpoint)
+    calib = load_calibration_images(args.calib, args.n_calib)
+    with tempfile.TemporaryDirectory() as tmp:
+        parts = load_parts(detector)
+        fp32, int8 = export_pair(parts, Path(tmp), calib, detector.img_size)
+        for name, predictor in (("torch-fp32", detector), ("ort-fp32", OnnxDetector(fp32, 2)),
+                                ("ort-int8", OnnxDetector(int8, 2))):
+            t0 = time.perf_counter()
+            results = predict_coco(predictor, gt, root, progress=False)
+            ap = coco_ap(gt, results)
+            crater = ap["per_class"]["crater"]
+            print(json.dumps({"runtime": name, "crater_AP50": crater["AP50"],
+                              "crater_AP": crater["AP"], "AP50_all": ap["AP50"],
+                              "images": len(gt["images"]),
+                              "seconds": round(time.perf_counter() - t0, 1)}), flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="mode", required=True)
+    lat = sub.add_parser("latency", help="latency per preset, size, threads and runtime")
+    lat.add_argument("--presets", nargs="+", default=["nano", "tiny", "small"])
+    lat.add_argument("--sizes", type=int, nargs="+", default=[512, 1024])
+    lat.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    lat.add_argument("--runs", type=int, default=7)
+    lat.add_argument("--warmup", type=int, default=2)
+    lat.add_argument("--calib", type=Path, default=None,
+                     help="calibration images (default: synthetic noise frames)")
+    lat.add_argument("--torch-max-size", type=int, default=4096,
+                     help="skip eager PyTorch above this input side")
+    lat.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    lat.set_defaults(func=run_latency)
+    acc = sub.add_parser("accuracy", help="crater AP50: eager vs onnxruntime fp32 vs int8")
+    acc.add_argument("--checkpoint", type=Path, required=True)
+    acc.add_argument("--test", type=Path, required=True, help="test annotations.json")
+    acc.add_argument("--calib", type=Path, required=True, help="calibration dataset folder")
+    acc.add_argument("--n-calib", type=int, default=32)
+    acc.set_defaults(func=run_accuracy)
+    args = parser.parse_args()
+    args.func(args)
+
+
+if __name__ == "__main__":
+    main()

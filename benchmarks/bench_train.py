@@ -1,0 +1,75 @@
+"""Training throughput per preset on CPU (images/s of forward + loss + backward + AdamW step).
+
+    .venv/bin/python benchmarks/bench_train.py --presets nano tiny small --size 320 --batch 8
+
+Random images with a few random boxes each; prints one line per preset.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from lunarnav_ml.losses import YOLOLoss
+from lunarnav_ml.models import build_model, count_parameters
+
+
+def _targets(batch: int, size: int, gen: torch.Generator) -> list[dict[str, torch.Tensor]]:
+    out = []
+    for _ in range(batch):
+        xy = torch.rand(6, 2, generator=gen) * size * 0.7
+        wh = 8 + torch.rand(6, 2, generator=gen) * size * 0.25
+        out.append({"boxes": torch.cat([xy, xy + wh], 1).clamp(max=size),
+                    "labels": torch.randint(1, 4, (6,), generator=gen)})
+    return out
+
+
+def bench(preset: str, size: int, batch: int, steps: int, warmup: int) -> dict[str, float]:
+    """Seconds per training step and images per second for one preset."""
+    gen = torch.Generator().manual_seed(0)
+    model = build_model(preset).train()
+    loss_fn = YOLOLoss(model.num_classes)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
+    x = torch.rand(batch, 3, size, size, generator=gen)
+    targets = _targets(batch, size, gen)
+    for i in range(warmup + steps):
+        if i == warmup:
+            start = time.perf_counter()
+        loss = loss_fn(model(x), targets, model.anchors, model.strides, model.scale_xy)["loss"]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    step = (time.perf_counter() - start) / steps
+    model.eval()
+    with torch.no_grad():
+        model(x)
+        t0 = time.perf_counter()
+        model(x)
+        infer = time.perf_counter() - t0
+    return {"params_m": count_parameters(model) / 1e6, "step_s": step,
+            "train_img_s": batch / step, "infer_img_s": batch / infer}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--presets", nargs="+", default=["nano", "tiny", "small"])
+    parser.add_argument("--size", type=int, default=320, help="input side, px")
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, input {args.size} px, "
+          f"batch {args.batch}")
+    for preset in args.presets:
+        r = bench(preset, args.size, args.batch, args.steps, args.warmup)
+        print(f"{preset:8s} {r['params_m']:6.2f} M params  train {r['train_img_s']:6.1f} img/s "
+              f"({r['step_s']:.2f} s/step)  inference {r['infer_img_s']:6.1f} img/s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""lunarnav_ml.baselines."""

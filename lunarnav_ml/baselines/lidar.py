@@ -1,0 +1,443 @@
+"""The paper's lidar crater detector (LunarNav 2022, "LIDAR-based Approach").
+
+Stage 1  fit the ground plane, rotate the cloud so z is along gravity; estimate a surface normal
+         per patch; keep normals facing the sensor; cluster them and size-filter the clusters:
+         candidate crater back walls.
+Stage 2  from each back-wall centroid, ray-trace the voxelized cloud downward along the line to
+         the sensor; the no-data -> data transition is the front rim. The midpoint is a first
+         center; normals of the cluster re-filtered toward it give the back rim as the farthest
+         point along the viewing direction. Back rim - front rim = diameter, and a new center.
+Stage 3  with the orbital-map prior: for each detection, the map craters of similar diameter
+         (and near the prior position); a parametric model of each (diameter, depth) sampled in
+         points is placed on a 2D grid around the estimate and scored against the voxelized
+         cloud with the paper's four rules; the best placement of the best map crater wins.
+
+All stages work in the gravity-aligned ground frame (plane z = 0, sensor at (0, 0, h)); results
+are returned in the frame of the input points.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from lunarnav_ml.baselines import pointcloud as pc
+from lunarnav_ml.baselines.crater_model import RIM_RATIO, CraterProfile, occluded
+from lunarnav_ml.errors import InputError
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    """Settings of :func:`detect_craters_lidar` (defaults: the paper's sensor, 1.5 m high).
+
+    Attributes:
+        roi_m: horizontal radius around the sensor that is processed, m.
+        plane_tol_m: RANSAC inlier distance of the ground-plane fit, m.
+        downsample_m: voxel edge of the downsampling before normals, m.
+        normal_k: neighbours per normal patch.
+        min_slope_deg: a normal "faces the sensor" when the surface tilts toward it by more.
+        cluster_link_m: facing points closer than this join one cluster, m.
+        min_cluster_points: smallest back-wall cluster kept (points after downsampling).
+        min_cluster_extent_m, max_cluster_extent_m: horizontal size filter of clusters, m.
+        column_cell_m: column width of the voxelized cloud ray-traced in Stage 2, m.
+        angular_res_deg: lidar angular resolution (sets the ring gap not taken for a shadow).
+        backrim_cos: cosine a normal must reach toward the first center to count as back rim.
+        min_diameter_m, max_diameter_m: Stage-2 diameter estimates kept, m.
+        diameter_tol: map craters within this relative diameter difference are candidates.
+        prior_radius_m: map craters whose prior center is farther than this from the estimate
+            are not tried, m (None: any distance).
+        voxel_m: voxel edge of the grid the model is scored against, m.
+        search_frac, search_min_m: half-width of the placement grid: max(min, frac D), m.
+        rim_tol_m, rim_search_m: rim points with a voxel within tol are fine; none within
+            search costs a full point, m.
+        height_tol_m: a voxel this far above a model point is "higher than the point", m.
+        min_score: placements scoring below this (mean per model point, 0 = perfect, -1 = every
+            point penalized) are rejected.
+    """
+
+    roi_m: float = 45.0
+    plane_tol_m: float = 0.05
+    downsample_m: float = 0.15
+    normal_k: int = 12
+    min_slope_deg: float = 12.0
+    cluster_link_m: float = 0.6
+    min_cluster_points: int = 15
+    min_cluster_extent_m: float = 0.8
+    max_cluster_extent_m: float = 30.0
+    column_cell_m: float = 0.2
+    angular_res_deg: float = 0.333
+    backrim_cos: float = 0.5
+    min_diameter_m: float = 2.0
+    max_diameter_m: float = 40.0
+    diameter_tol: float = 0.4
+    prior_radius_m: float | None = 8.0
+    voxel_m: float = 0.1
+    search_frac: float = 0.25
+    search_min_m: float = 1.5
+    rim_tol_m: float = 0.15
+    rim_search_m: float = 1.0
+    height_tol_m: float = 0.15
+    min_score: float = -0.3
+
+
+@dataclass(frozen=True)
+class MapCrater:
+    """A crater of the orbital landmark map, as predicted in the frame of the input points.
+
+    Attributes:
+        center_xy: prior rim-circle center (from the map and the approximate rover pose), m.
+        diameter_m: map diameter, m.
+        depth_m: rim crest to floor, m (the dataset's ``depth_m``).
+        rim_height_m: rim crest above the surroundings, m (None: 0.04 D).
+    """
+
+    center_xy: tuple[float, float]
+    diameter_m: float
+    depth_m: float
+    rim_height_m: float | None = None
+
+
+@dataclass
+class BackWall:
+    """Stage 1 output: one cluster of sensor-facing normals (ground frame).
+
+    Attributes:
+        points: (K, 3) m.  normals: (K, 3) unit.  centroid: (3,) m.
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    centroid: np.ndarray
+
+
+@dataclass
+class CraterEstimate:
+    """Stage 2 output (ground frame).
+
+    Attributes:
+        wall: the back-wall cluster.
+        front_rim: (3,) m.  back_rim: (3,) m.  center: (3,) m.
+        diameter_m: back rim - front rim along the viewing direction, m.
+    """
+
+    wall: BackWall
+    front_rim: np.ndarray
+    back_rim: np.ndarray
+    center: np.ndarray
+    diameter_m: float
+
+
+@dataclass
+class LidarDetection:
+    """A detected crater in the frame of the input points.
+
+    Attributes:
+        center_m: (3,) rim-circle center, m.
+        diameter_m: the matched map crater's diameter (Stage 3) or the Stage-2 estimate, m.
+        score: Stage-3 score (mean per model point, 0 best, -1 worst); NaN without a map.
+        map_index: index of the matched map crater, or None without a map.
+        stage2_center_m: (3,) Stage-2 center estimate, m.
+        stage2_diameter_m: Stage-2 diameter estimate, m.
+    """
+
+    center_m: np.ndarray
+    diameter_m: float
+    score: float
+    map_index: int | None
+    stage2_center_m: np.ndarray
+    stage2_diameter_m: float
+
+
+@dataclass
+class _Scene:
+    """The aligned cloud and its voxelizations, shared by Stages 2 and 3."""
+
+    frame: pc.GroundFrame
+    sensor_h: float
+    points: np.ndarray
+    columns: pc.ColumnGrid
+    voxels: pc.VoxelGrid
+    extras: dict = field(default_factory=dict)
+
+
+def detect_craters_lidar(
+    points: np.ndarray,
+    *,
+    sensor_origin: Sequence[float] = (0.0, 0.0, 1.5),
+    map_craters: Sequence[MapCrater] | None = None,
+    config: LidarConfig | None = None,
+) -> list[LidarDetection]:
+    """Detect craters in one lidar scan: Stages 1-2, and Stage 3 when a map prior is given.
+
+    Args:
+        points: the scan, m, any frame with z roughly up; rows with NaN are no-returns.
+        sensor_origin: sensor position in that frame, m.
+        map_craters: craters expected around the rover (orbital map + approximate pose). None
+            returns the Stage-2 estimates unmatched.
+        config: settings (defaults: the paper's sensor).
+
+    Returns:
+        detections, best score first (Stage 3) or in cluster order (Stage 2 only). An empty
+        cloud, an all-NaN cloud or a flat scene gives an empty list.
+
+    Raises:
+        InputError: ``points`` not (N, 3), or ``sensor_origin`` not 3 finite numbers.
+
+    Shape:
+        points: (N, 3) -> list of detections with (3,) centers.
+    """
+    cfg = config or LidarConfig()
+    pts = pc.finite_cloud("points", points)
+    sensor = np.asarray(sensor_origin, float)
+    if sensor.shape != (3,) or not np.all(np.isfinite(sensor)):
+        raise InputError(f"sensor_origin: expected 3 finite numbers, got {sensor_origin!r}")
+    scene = prepare_scene(pts, sensor, cfg)
+    if scene is None:
+        return []
+    estimates = [e for w in find_back_walls(scene, cfg) if (e := estimate_crater(scene, w, cfg))]
+    if map_craters is None:
+        return [_unmatched(scene, e) for e in estimates]
+    return match_to_map(scene, estimates, list(map_craters), cfg)
+
+
+def prepare_scene(pts: np.ndarray, sensor: np.ndarray, cfg: LidarConfig) -> _Scene | None:
+    """Ground plane, gravity alignment, ROI crop, downsampling and voxel grids (None: too few
+    points for a plane)."""
+    near = np.hypot(pts[:, 0] - sensor[0], pts[:, 1] - sensor[1]) <= cfg.roi_m
+    pts = pts[near]
+    if len(pts) < 50:
+        return None
+    normal, offset, inliers = pc.fit_plane_ransac(pts, inlier_tol_m=cfg.plane_tol_m)
+    if inliers.mean() < 0.2:
+        return None
+    frame = pc.ground_frame(normal, offset, sensor)
+    ground = pc.voxel_downsample(frame.to_ground(pts), cfg.downsample_m)
+    sensor_h = float(frame.to_ground(sensor[None])[0, 2])
+    if sensor_h <= 0:
+        return None
+    columns = pc.ColumnGrid.build(ground, cfg.column_cell_m, cfg.roi_m + 1.0)
+    return _Scene(frame, sensor_h, ground, columns, pc.VoxelGrid.build(ground, cfg.voxel_m))
+
+
+def find_back_walls(scene: _Scene, cfg: LidarConfig) -> list[BackWall]:
+    """Stage 1: clusters of normals tilted toward the sensor, size-filtered."""
+    pts = scene.points
+    normals, valid = pc.estimate_normals(pts, k=cfg.normal_k)
+    to_sensor = -pts[:, :2] / np.maximum(np.linalg.norm(pts[:, :2], axis=1, keepdims=True), 1e-9)
+    facing = valid & (np.einsum("ij,ij->i", normals[:, :2], to_sensor)
+                      > np.sin(np.radians(cfg.min_slope_deg)))
+    idx = np.nonzero(facing)[0]
+    if len(idx) < cfg.min_cluster_points:
+        return []
+    pairs = cKDTree(pts[idx]).query_pairs(cfg.cluster_link_m, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                       shape=(len(idx), len(idx)))
+    _, labels = connected_components(graph, directed=False)
+    walls = []
+    for lab in np.unique(labels):
+        members = idx[labels == lab]
+        if len(members) < cfg.min_cluster_points:
+            continue
+        xy = pts[members, :2]
+        extent = float(np.max(np.ptp(xy, axis=0)))
+        if cfg.min_cluster_extent_m <= extent <= cfg.max_cluster_extent_m:
+            walls.append(BackWall(pts[members], normals[members], pts[members].mean(axis=0)))
+    return walls
+
+
+def trace_front_rim(
+    scene: _Scene, wall: BackWall, cfg: LidarConfig
+) -> np.ndarray | None:
+    """Stage 2: walk from the back-wall centroid toward the sensor, casting vertical rays into
+    the column grid; the front rim is the first return after a no-data stretch longer than the
+    lidar's ring spacing on flat ground there.
+
+    Returns:
+        (3,) front-rim point (ground frame, m), or None when no shadow is found.
+    """
+    rho_c = float(np.hypot(*wall.centroid[:2]))
+    u = wall.centroid[:2] / max(rho_c, 1e-9)
+    s = np.arange(rho_c, max(rho_c - cfg.max_diameter_m, 0.5), -cfg.column_cell_m)
+    tops = scene.columns.lookup(s[:, None] * u)
+    has = np.isfinite(tops)
+    dtheta = np.radians(cfg.angular_res_deg)
+    i = int(np.argmin(has)) if not has.all() else len(has)  # first no-data cell
+    while i < len(has):
+        j = i + int(np.argmax(has[i:])) if has[i:].any() else len(has)
+        if j == len(has):
+            return None
+        gap = s[i - 1] - s[j] if i > 0 else s[0] - s[j]
+        ring = s[j] ** 2 * dtheta / scene.sensor_h
+        if gap >= max(2 * cfg.column_cell_m, 1.1 * ring + cfg.column_cell_m):
+            return np.array([s[j] * u[0], s[j] * u[1], tops[j]])
+        i = j + int(np.argmin(has[j:])) if not has[j:].all() else len(has)
+    return None
+
+
+def estimate_crater(scene: _Scene, wall: BackWall, cfg: LidarConfig) -> CraterEstimate | None:
+    """Stage 2: front rim, back rim from re-filtered normals, diameter and center."""
+    front = trace_front_rim(scene, wall, cfg)
+    if front is None:
+        return None
+    u = wall.centroid[:2] / max(float(np.hypot(*wall.centroid[:2])), 1e-9)
+    center0 = 0.5 * (front[:2] + wall.centroid[:2])
+    toward = center0 - wall.points[:, :2]
+    toward /= np.maximum(np.linalg.norm(toward, axis=1, keepdims=True), 1e-9)
+    nh = wall.normals[:, :2] / np.maximum(np.linalg.norm(wall.normals[:, :2], axis=1,
+                                                         keepdims=True), 1e-9)
+    keep = np.einsum("ij,ij->i", nh, toward) > cfg.backrim_cos
+    if keep.sum() < 3:
+        return None
+    proj = wall.points[keep, :2] @ u
+    back = wall.points[keep][int(np.argmin(np.abs(proj - np.quantile(proj, 0.98))))]
+    diameter = float(np.quantile(proj, 0.98) - front[:2] @ u)
+    if not cfg.min_diameter_m <= diameter <= cfg.max_diameter_m:
+        return None
+    center_xy = front[:2] + 0.5 * diameter * u
+    center = np.array([center_xy[0], center_xy[1], 0.5 * (front[2] + back[2])])
+    return CraterEstimate(wall, front, back, center, diameter)
+
+
+def _unmatched(scene: _Scene, est: CraterEstimate) -> LidarDetection:
+    center = scene.frame.from_ground(est.center[None])[0]
+    return LidarDetection(center, est.diameter_m, float("nan"), None, center, est.diameter_m)
+
+
+def match_to_map(
+    scene: _Scene, estimates: list[CraterEstimate], map_craters: list[MapCrater],
+    cfg: LidarConfig,
+) -> list[LidarDetection]:
+    """Stage 3: for each estimate, the best-scoring placement of the map craters of similar
+    diameter; one detection per map crater (its best estimate), best score first."""
+    best: dict[int, LidarDetection] = {}
+    for est in estimates:
+        for k, mc in enumerate(map_craters):
+            if not _is_candidate(scene, est, mc, cfg):
+                continue
+            center, score = fit_model(scene, est, mc, cfg)
+            if score < cfg.min_score or (k in best and best[k].score >= score):
+                continue
+            stage2 = scene.frame.from_ground(est.center[None])[0]
+            best[k] = LidarDetection(scene.frame.from_ground(center[None])[0], mc.diameter_m,
+                                     score, k, stage2, est.diameter_m)
+    return sorted(best.values(), key=lambda d: -d.score)
+
+
+def _is_candidate(scene: _Scene, est: CraterEstimate, mc: MapCrater, cfg: LidarConfig) -> bool:
+    """Similar diameter and (with a prior radius) a prior center near the estimate."""
+    if abs(est.diameter_m - mc.diameter_m) > cfg.diameter_tol * mc.diameter_m:
+        return False
+    if cfg.prior_radius_m is None:
+        return True
+    prior = scene.frame.to_ground(np.array([[mc.center_xy[0], mc.center_xy[1], 0.0]]))[0]
+    return float(np.hypot(*(prior[:2] - est.center[:2]))) <= cfg.prior_radius_m
+
+
+def fit_model(
+    scene: _Scene, est: CraterEstimate, mc: MapCrater, cfg: LidarConfig
+) -> tuple[np.ndarray, float]:
+    """Place the map crater's model on a coarse then a fine 2D grid around the estimate.
+
+    Returns:
+        best center (3,) in the ground frame (m, z = rim crest) and its score.
+    """
+    profile = map_profile(mc)
+    spacing = max(0.1, mc.diameter_m / 50.0)
+    model = ModelPoints.build(profile, spacing, est.center[:2], scene.sensor_h)
+    base = local_ground(scene, profile, est.center[:2])
+    half = max(cfg.search_min_m, cfg.search_frac * mc.diameter_m)
+    step = max(0.2, mc.diameter_m / 40.0)
+    center = est.center[:2]
+    for half_w, st in ((half, step), (step, step / 4), (step / 4, step / 16)):
+        g = np.arange(-half_w, half_w + 1e-9, st)
+        offsets = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2) + center
+        scores = score_placements(scene, model, offsets, base, cfg)
+        center, score = offsets[int(np.argmax(scores))], float(np.max(scores))
+    return np.array([center[0], center[1], base + float(profile.rim_height_m)]), score
+
+
+def map_profile(mc: MapCrater) -> CraterProfile:
+    """The parametric model of a map crater (floor depth = crest-to-floor depth - rim)."""
+    rim = RIM_RATIO * mc.diameter_m if mc.rim_height_m is None else mc.rim_height_m
+    return CraterProfile(mc.diameter_m, max(mc.depth_m - rim, 0.0), rim)
+
+
+def local_ground(scene: _Scene, profile: CraterProfile, center_xy: np.ndarray) -> float:
+    """Height of the surface the crater sits in: the median of (column top - model flank
+    height) over the annulus 1.5-2.5 R around the center (0 when it holds no data), m."""
+    ang = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    rr = np.linspace(1.5, 2.5, 6) * profile.radius_m
+    offsets = np.stack([np.outer(rr, np.cos(ang)), np.outer(rr, np.sin(ang))], -1)
+    tops = scene.columns.lookup((center_xy + offsets).reshape(-1, 2))
+    resid = tops - np.repeat(profile.height(rr), len(ang))
+    resid = resid[np.isfinite(resid)]
+    return float(np.median(resid)) if len(resid) >= 8 else 0.0
+
+
+@dataclass
+class ModelPoints:
+    """Sampled parametric crater, relative to its center, split by the paper's rules.
+
+    Attributes:
+        rim: (R, 3) points on the rim band the sensor can see (rule 2).
+        shadow: (S, 3) interior points the sensor cannot see: the area before the front rim
+            (rule 1).
+        other: (O, 3) every other point (rules 3 and 4).
+    """
+
+    rim: np.ndarray
+    shadow: np.ndarray
+    other: np.ndarray
+
+    @classmethod
+    def build(
+        cls, profile: CraterProfile, spacing: float, center_xy: np.ndarray, sensor_h: float
+    ) -> ModelPoints:
+        """Sample ``profile`` and classify its points as seen from a sensor at the origin
+        with the crater at ``center_xy`` (ground frame, m)."""
+        pts, rho = profile.sample(spacing, extent=1.25)
+        band = max(0.08, 1.5 * spacing / profile.radius_m)
+        hidden = occluded(profile, pts, -np.asarray(center_xy, float), sensor_h)
+        rim = (np.abs(rho - 1.0) <= band) & ~hidden
+        shadow = hidden & (rho < 1.0)
+        return cls(pts[rim], pts[shadow], pts[~rim & ~shadow])
+
+    @property
+    def count(self) -> int:
+        """Number of scored points."""
+        return len(self.rim) + len(self.shadow) + len(self.other)
+
+
+def score_placements(
+    scene: _Scene, model: ModelPoints, centers: np.ndarray, base_z: float, cfg: LidarConfig
+) -> np.ndarray:
+    """Mean per-point score of the model placed at each center (0 best, -1 worst).
+
+    Rules (paper, Stage 3): shadow points are penalized when their column holds a return (it
+    should be occluded); rim points when no occupied voxel is near, in proportion to how far
+    the nearest one is; other points when a return lies above them by more than the height
+    tolerance; otherwise no penalty.
+
+    Shape:
+        centers: (P, 2) m -> (P,).
+    """
+    shift = np.concatenate([centers, np.full((len(centers), 1), base_z)], axis=1)[:, None, :]
+    total = np.zeros(len(centers))
+    if len(model.shadow):
+        tops = scene.columns.lookup((model.shadow[None] + shift)[..., :2])
+        total -= np.isfinite(tops).sum(axis=1)
+    if len(model.rim):
+        rim = (model.rim[None] + shift).reshape(-1, 3)
+        d = scene.voxels.nearest(rim, cfg.rim_search_m).reshape(len(centers), -1)
+        pen = np.clip((d - cfg.rim_tol_m) / (cfg.rim_search_m - cfg.rim_tol_m), 0.0, 1.0)
+        total -= pen.sum(axis=1)
+    if len(model.other):
+        pts = model.other[None] + shift
+        above = scene.columns.lookup(pts[..., :2]) - pts[..., 2] - cfg.height_tol_m
+        total -= np.clip(np.nan_to_num(above, nan=0.0) / 0.3, 0.0, 1.0).sum(axis=1)
+    return total / max(model.count, 1)

@@ -1,0 +1,55 @@
+"""Letterbox resizing: keep the aspect ratio, pad to a square with gray (YOLO convention)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+PAD_VALUE = 114  # gray used for padding, as in the YOLO family
+
+
+@dataclass(frozen=True)
+class LetterboxInfo:
+    """How an image was mapped into the network input: ``input = original * scale + pad``."""
+
+    scale: float
+    pad_x: float  # px
+    pad_y: float  # px
+
+    def to_original(self, boxes: np.ndarray, width: int, height: int) -> np.ndarray:
+        """Map (N, 4) xyxy boxes from input pixels back to original pixels, clipped."""
+        out = np.asarray(boxes, dtype=np.float32).reshape(-1, 4).copy()
+        out[:, 0::2] = ((out[:, 0::2] - self.pad_x) / self.scale).clip(0, width)
+        out[:, 1::2] = ((out[:, 1::2] - self.pad_y) / self.scale).clip(0, height)
+        return out
+
+
+def resize_long_side(image: np.ndarray, size: int) -> tuple[np.ndarray, float]:
+    """Resize so the longer side is ``size`` px (area interpolation when shrinking).
+
+    Shape:
+        - image: :math:`(H, W, 3)`; Output: :math:`(H', W', 3)` with ``max(H', W') = size``.
+    """
+    h, w = image.shape[:2]
+    scale = size / max(h, w)
+    if scale == 1.0:
+        return image, scale
+    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    new = (max(1, round(w * scale)), max(1, round(h * scale)))
+    return cv2.resize(image, new, interpolation=interp), scale
+
+
+def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, LetterboxInfo]:
+    """Fit an image into a ``size`` x ``size`` square, centred, padded with gray.
+
+    Shape:
+        - image: :math:`(H, W, 3)` uint8; Output: :math:`(size, size, 3)` uint8.
+    """
+    resized, scale = resize_long_side(image, size)
+    h, w = resized.shape[:2]
+    pad_x, pad_y = (size - w) // 2, (size - h) // 2
+    out = np.full((size, size, 3), PAD_VALUE, dtype=np.uint8)
+    out[pad_y:pad_y + h, pad_x:pad_x + w] = resized
+    return out, LetterboxInfo(scale, float(pad_x), float(pad_y))

@@ -1,0 +1,191 @@
+"""``lunarnav demo``: the whole pipeline end to end on a 2-core CPU.
+
+Render a small synthetic stereo dataset (train / validation / held-out test, disjoint seeds),
+train the smallest detector preset for a few minutes, pick the operating threshold on the
+validation split, export ONNX, run the exported model through onnxruntime on the held-out test
+split, and write one output folder: metrics JSON, a markdown report, the Pd plots and detection
+overlays.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.utils import atomic
+
+
+@dataclass
+class DemoConfig:
+    """Sizes of the demo run; the defaults fit 15 minutes on 2 CPU cores."""
+
+    seed: int = 0  # base seed: train uses seed, validation seed + 1, test seed + 2 (x 1000003)
+    n_train: int = 320  # training images
+    n_val: int = 48  # validation images (operating threshold, best checkpoint)
+    n_test: int = 64  # held-out test images (reported figures)
+    image_size: int = 384  # rendered image side, px
+    preset: str = "nano"  # detector size preset
+    train_minutes: float = 7.0  # wall-clock training budget
+    batch_size: int = 16
+    max_fa_per_image: float = 0.2  # false-alarm budget for the operating threshold
+    n_overlays: int = 8  # overlay images written
+
+    def validate(self) -> None:
+        """Reject impossible sizes with a message naming the field."""
+        for name in ("n_train", "n_val", "n_test", "image_size", "batch_size"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"demo: {name} must be positive, got {getattr(self, name)}")
+        if self.image_size % 32:
+            raise ConfigError(f"demo: image_size must be a multiple of 32, got {self.image_size}")
+        if self.train_minutes <= 0:
+            raise ConfigError(f"demo: train_minutes must be positive, got {self.train_minutes}")
+
+
+def _split_seed(seed: int, split: int) -> int:
+    return seed + 1_000_003 * split
+
+
+class _Clock:
+    """Wall time per stage."""
+
+    def __init__(self) -> None:
+        self.start = time.perf_counter()
+        self.stages: dict[str, float] = {}
+        self._t = self.start
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.stages[name] = round(now - self._t, 2)
+        self._t = now
+        print(f"[demo] {name}: {self.stages[name]:.1f} s", flush=True)
+
+    @property
+    def total(self) -> float:
+        return round(time.perf_counter() - self.start, 2)
+
+
+def peak_rss_gib() -> float:
+    """Peak resident memory of this process and its waited-for children, GiB."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return round(max(own, kids) / 1024**2, 3)
+
+
+def render_splits(cfg: DemoConfig, data_dir: Path, progress: bool) -> dict[str, Path]:
+    """Render train / val / test with disjoint seeds; returns annotation paths."""
+    from lunarnav_ml.synth import generate_dataset
+
+    sizes = {"train": cfg.n_train, "val": cfg.n_val, "test": cfg.n_test}
+    return {
+        split: generate_dataset(data_dir / split, n_images=n, seed=_split_seed(cfg.seed, i),
+                                image_size=cfg.image_size, stereo=True, progress=progress)
+        for i, (split, n) in enumerate(sizes.items())
+    }
+
+
+def run_demo(cfg: DemoConfig, out_dir: Path, progress: bool = True) -> dict[str, Any]:
+    """Run the whole demo; the output folder appears complete or not at all."""
+    cfg.validate()
+    with atomic.atomic_dir(out_dir) as work:
+        summary = _run_in(cfg, work, progress)
+    print(f"[demo] wrote {out_dir}", flush=True)
+    return summary
+
+
+def _run_in(cfg: DemoConfig, work: Path, progress: bool) -> dict[str, Any]:
+    from lunarnav_ml.eval.pd import pick_operating_threshold
+    from lunarnav_ml.eval.predict import predict_coco
+    from lunarnav_ml.eval.report import detection_metrics, write_report
+    from lunarnav_ml.export.onnx_export import export_onnx
+    from lunarnav_ml.runtime import OnnxDetector
+    from lunarnav_ml.training.api import fit_detector, load_detector
+
+    clock = _Clock()
+    ann = render_splits(cfg, work / "data", progress)
+    clock.lap("render")
+    ckpt = fit_detector(ann["train"], ann["val"], work / "train", preset=cfg.preset,
+                        img_size=cfg.image_size, max_minutes=cfg.train_minutes,
+                        batch_size=cfg.batch_size, seed=cfg.seed, progress=progress)
+    clock.lap("train")
+    gt = {split: json.loads(Path(p).read_text()) for split, p in ann.items()}
+    detector = load_detector(ckpt)
+    val_results = predict_coco(detector, gt["val"], ann["val"].parent, progress=progress,
+                               desc="val (torch)")
+    threshold = pick_operating_threshold(gt["val"], val_results, cfg.max_fa_per_image)
+    clock.lap("threshold")
+    onnx_path = export_onnx(detector, work / "model.onnx")
+    runtime = OnnxDetector(onnx_path, threads=2)
+    test_results = predict_coco(runtime, gt["test"], ann["test"].parent, progress=progress,
+                                desc="test (onnxruntime)")
+    atomic.write_json(work / "test_detections.json", test_results, indent=None)
+    clock.lap("export+inference")
+    metrics = detection_metrics(gt["test"], test_results, threshold)
+    metrics["val_metrics"] = detection_metrics(gt["val"], val_results, threshold)["coco"]
+    write_overlays(gt["test"], test_results, threshold, ann["test"].parent, work / "overlays",
+                   cfg.n_overlays)
+    clock.lap("report")
+    metrics["run"] = {"config": asdict(cfg), "stage_seconds": clock.stages,
+                      "wall_seconds": clock.total, "peak_rss_gib": peak_rss_gib(),
+                      "checkpoint": str(Path(ckpt).relative_to(work)), "onnx": "model.onnx"}
+    write_report(metrics, work, "lunarnav demo: synthetic held-out test split (onnxruntime)")
+    _print_summary(metrics)
+    return metrics
+
+
+def write_overlays(gt: dict[str, Any], results: list[dict[str, Any]], threshold: float,
+                   root: Path, out: Path, n: int) -> None:
+    """Overlay ground truth and thresholded detections on the first ``n`` images."""
+    import cv2
+
+    from lunarnav_ml.eval.plots import draw_overlay
+
+    names = {c["id"]: c["name"] for c in gt["categories"]}
+    for record in gt["images"][:n]:
+        image = cv2.imread(str(root / record["file_name"]), cv2.IMREAD_COLOR)
+        anns = [a for a in gt["annotations"] if a["image_id"] == record["id"]]
+        dets = [d for d in results if d["image_id"] == record["id"] and d["score"] >= threshold]
+        atomic.write_image(out / f"{Path(record['file_name']).stem}.png",
+                           draw_overlay(image, anns, dets, names))
+
+
+def _print_summary(m: dict[str, Any]) -> None:
+    crater = m["coco"]["per_class"]["crater"]
+    print(f"[demo] crater AP50 {crater['AP50']:.3f}  AP {crater['AP']:.3f}  "
+          f"Pd(D>=5 m, <=20 m) {m.get('crater_pd_D5_within20m')}  "
+          f"FA/img {m['false_alarms_per_image']:.3f}  threshold {m['threshold']:.3f}  "
+          f"wall {m['run']['wall_seconds']:.0f} s  peak RSS {m['run']['peak_rss_gib']:.2f} GiB",
+          flush=True)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``lunarnav demo``."""
+    d = DemoConfig()
+    p = subparsers.add_parser("demo", help="render, train, evaluate and export end to end",
+                              description=__doc__)
+    p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--n-train", type=int, default=d.n_train)
+    p.add_argument("--n-val", type=int, default=d.n_val)
+    p.add_argument("--n-test", type=int, default=d.n_test)
+    p.add_argument("--image-size", type=int, default=d.image_size, help="px, multiple of 32")
+    p.add_argument("--preset", default=d.preset)
+    p.add_argument("--train-minutes", type=float, default=d.train_minutes)
+    p.add_argument("--batch-size", type=int, default=d.batch_size)
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    cfg = DemoConfig(seed=args.seed, n_train=args.n_train, n_val=args.n_val, n_test=args.n_test,
+                     image_size=args.image_size, preset=args.preset,
+                     train_minutes=args.train_minutes, batch_size=args.batch_size)
+    run_demo(cfg, args.out, progress=not args.no_progress)
+    return 0

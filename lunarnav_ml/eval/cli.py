@@ -1,0 +1,137 @@
+"""``lunarnav eval``: evaluation reports.
+
+Tasks:
+- ``detection``: COCO AP per class, crater Pd and false alarms per image at an operating
+  threshold picked on a validation split, Pd vs range / diameter / sun angles, plots, overlays.
+- ``geometry``: 3D crater center and diameter errors (3-sigma tables) on a stereo set.
+- ``baselines-lidar`` / ``baselines-stereo``: the paper's geometric detectors on the
+  paper-lidar / paper-stereo protocol sets, beside the paper's tables.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from lunarnav_ml.errors import InputError
+
+TASKS = ("detection", "geometry", "baselines-lidar", "baselines-stereo")
+
+
+def load_json(path: Path, what: str) -> Any:
+    """Read a JSON file, with one-line errors naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {what} file not found")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise InputError(f"{path}: {what} is not valid JSON ({err})") from err
+
+
+def load_predictor(path: Path, threads: int) -> Any:
+    """An ONNX file runs through the torch-free runtime; anything else loads as a checkpoint."""
+    if Path(path).suffix == ".onnx":
+        from lunarnav_ml.runtime import OnnxDetector
+
+        return OnnxDetector(path, threads=threads)
+    from lunarnav_ml.training.api import load_detector
+
+    return load_detector(path)
+
+
+def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]]:
+    """Ground truth and detections of one split, from a results file or by running the model."""
+    from lunarnav_ml.data.coco import load_coco
+    from lunarnav_ml.eval.predict import predict_coco
+
+    gt_path = Path(getattr(args, f"{split}_gt"))
+    gt = load_coco(gt_path).dataset
+    results_path = getattr(args, f"{split}_results")
+    if results_path is not None:
+        return gt, load_json(results_path, "detections")
+    if args.model is None:
+        raise InputError(f"eval: give --model or --{split}-results for the {split} split")
+    predictor = load_predictor(args.model, args.threads)
+    return gt, predict_coco(predictor, gt, gt_path.parent, desc=split, progress=not args.no_progress)
+
+
+def run_detection(args: argparse.Namespace) -> int:
+    """The detection report of ``lunarnav eval --task detection``."""
+    from lunarnav_ml.demo import write_overlays
+    from lunarnav_ml.eval.pd import pick_operating_threshold
+    from lunarnav_ml.eval.report import detection_metrics, write_report
+    from lunarnav_ml.utils import atomic
+
+    if args.threshold is None and args.val_gt is None:
+        raise InputError("eval: the operating threshold comes from a validation split: give "
+                         "--val-gt (with --model or --val-results), or --threshold")
+    threshold = args.threshold
+    if threshold is None:
+        val_gt, val_results = _results_for(args, "val")
+        threshold = pick_operating_threshold(val_gt, val_results, args.max_fa)
+    gt, results = _results_for(args, "test")
+    metrics = detection_metrics(gt, results, threshold)
+    with atomic.atomic_dir(args.out) as work:
+        atomic.write_json(work / "detections.json", results, indent=None)
+        write_report(metrics, work, f"Detection report: {args.test_gt}")
+        write_overlays(gt, results, threshold, Path(args.test_gt).parent, work / "overlays",
+                       args.overlays)
+    crater = metrics["coco"]["per_class"]["crater"]
+    print(f"crater AP50 {crater['AP50']}  Pd {metrics['crater_pd_all']}  "
+          f"FA/img {metrics['false_alarms_per_image']:.3f}  threshold {threshold:.3f}  -> {args.out}")
+    return 0
+
+
+def run_geometry(args: argparse.Namespace) -> int:
+    """The 3D geometry report of ``lunarnav eval --task geometry``."""
+    from lunarnav_ml.geometry.report import geometry_report
+
+    detections = load_json(args.test_results, "detections") if args.test_results else None
+    summary = geometry_report(Path(args.test_gt), args.out, detections=detections)
+    print(json.dumps(summary.get("summary", summary), indent=1, default=str)[:2000])
+    return 0
+
+
+def run_baselines(args: argparse.Namespace) -> int:
+    """The baseline reports of ``lunarnav eval --task baselines-lidar|baselines-stereo``."""
+    from lunarnav_ml.baselines.report import baseline_report
+
+    method = args.task.split("-", 1)[1]
+    metrics = baseline_report(Path(args.test_gt), args.out, method=method,
+                              progress=not args.no_progress)
+    print(json.dumps(metrics.get("summary", metrics), indent=1, default=str)[:2000])
+    print(f"-> {args.out}")
+    return 0
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    if args.task == "geometry":
+        return run_geometry(args)
+    if args.task.startswith("baselines-"):
+        return run_baselines(args)
+    return run_detection(args)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``lunarnav eval``."""
+    p = subparsers.add_parser("eval", help="evaluation reports (detection, geometry, baselines)",
+                              description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--task", choices=TASKS, default="detection")
+    p.add_argument("--test-gt", "--gt", dest="test_gt", type=Path, required=True,
+                   help="COCO annotations of the evaluated split")
+    p.add_argument("--test-results", type=Path, help="COCO results JSON for the evaluated split")
+    p.add_argument("--model", type=Path, help="checkpoint (.ckpt/.pt) or ONNX file to run")
+    p.add_argument("--val-gt", type=Path, help="validation annotations (operating threshold)")
+    p.add_argument("--val-results", type=Path, help="COCO results JSON for the validation split")
+    p.add_argument("--threshold", type=float, help="operating threshold, instead of --val-gt")
+    p.add_argument("--max-fa", type=float, default=0.2,
+                   help="false alarms per image allowed at the operating threshold")
+    p.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    p.add_argument("--overlays", type=int, default=12, help="overlay images to write")
+    p.add_argument("--out", type=Path, default=Path("outputs/eval"))
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=_dispatch)

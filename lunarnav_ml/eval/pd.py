@@ -1,0 +1,184 @@
+"""Probability of detection (Pd) the paper's way, and false alarms per image.
+
+A non-ignored ground-truth crater is detected when a predicted crater box scoring at or above
+the operating threshold has IoU >= 0.5 with it (DESIGN.md, "The paper's evaluation protocol").
+Matching is greedy by score, one prediction per ground truth. A prediction that matches no
+non-ignored crater but overlaps an ignored one (IoU >= 0.5) is neither a hit nor a false alarm;
+every other unmatched prediction is a false alarm. The operating threshold is picked on a
+validation split, never on the test set.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pycocotools import mask as mask_utils
+
+CRATER_ID = 1
+
+
+@dataclass
+class MatchResult:
+    """Per-crater outcome and false alarms of one evaluation at one threshold.
+
+    Attributes:
+        gt: the non-ignored ground-truth crater annotations, in a fixed order.
+        hit: bool per entry of ``gt``: detected at the threshold.
+        false_alarms: number of false-alarm predictions over all images.
+        n_images: number of images evaluated.
+    """
+
+    gt: list[dict[str, Any]]
+    hit: np.ndarray
+    false_alarms: int
+    n_images: int
+
+    @property
+    def pd(self) -> float:
+        """Fraction of ground-truth craters detected (NaN when there is none)."""
+        return float(self.hit.mean()) if self.hit.size else float("nan")
+
+    @property
+    def fa_per_image(self) -> float:
+        """False alarms per image."""
+        return self.false_alarms / max(self.n_images, 1)
+
+
+def match_craters(
+    gt: dict[str, Any],
+    results: Sequence[dict[str, Any]],
+    threshold: float,
+    iou_thres: float = 0.5,
+    category_id: int = CRATER_ID,
+) -> MatchResult:
+    """Match crater predictions to ground truth at a score threshold.
+
+    Args:
+        gt: COCO ground-truth dict.
+        results: COCO results (``image_id``, ``category_id``, ``bbox`` xywh px, ``score``).
+        threshold: operating score threshold (predictions below it are dropped).
+        iou_thres: IoU needed for a hit.
+        category_id: the class evaluated (1 = crater).
+    """
+    gt_by_img: dict[int, list[dict]] = defaultdict(list)
+    for ann in gt["annotations"]:
+        if ann["category_id"] == category_id:
+            gt_by_img[ann["image_id"]].append(ann)
+    dt_by_img: dict[int, list[dict]] = defaultdict(list)
+    for det in results:
+        if det["category_id"] == category_id and det["score"] >= threshold:
+            dt_by_img[det["image_id"]].append(det)
+    gts, hits, false_alarms = [], [], 0
+    for img in gt["images"]:
+        anns = gt_by_img.get(img["id"], [])
+        img_hits, img_fa = _match_image(anns, dt_by_img.get(img["id"], []), iou_thres)
+        gts.extend(a for a in anns if not _ignored(a))
+        hits.extend(img_hits)
+        false_alarms += img_fa
+    return MatchResult(gts, np.asarray(hits, dtype=bool), false_alarms, len(gt["images"]))
+
+
+def _ignored(ann: dict[str, Any]) -> bool:
+    return bool(ann.get("ignore", False)) or bool(ann.get("iscrowd", 0))
+
+
+def _match_image(
+    anns: list[dict], dets: list[dict], iou_thres: float
+) -> tuple[list[bool], int]:
+    """Greedy matching in one image; returns hit flags for non-ignored GT and the FA count."""
+    real = [a for a in anns if not _ignored(a)]
+    ignored = [a for a in anns if _ignored(a)]
+    dets = sorted(dets, key=lambda d: -d["score"])
+    hit = [False] * len(real)
+    if not dets:
+        return hit, 0
+    boxes = np.asarray([d["bbox"] for d in dets], dtype=float)
+    iou_real = _iou(boxes, real)
+    iou_ign = _iou(boxes, ignored)
+    false_alarms = 0
+    for i in range(len(dets)):
+        candidates = [j for j in range(len(real)) if not hit[j] and iou_real[i, j] >= iou_thres]
+        if candidates:
+            hit[max(candidates, key=lambda j: iou_real[i, j])] = True
+        elif not (iou_ign.shape[1] and iou_ign[i].max() >= iou_thres):
+            false_alarms += 1
+    return hit, false_alarms
+
+
+def _iou(boxes: np.ndarray, anns: list[dict]) -> np.ndarray:
+    if not anns:
+        return np.zeros((len(boxes), 0))
+    gt_boxes = np.asarray([a["bbox"] for a in anns], dtype=float)
+    return np.asarray(mask_utils.iou(boxes, gt_boxes, [0] * len(anns))).reshape(len(boxes), -1)
+
+
+def pick_operating_threshold(
+    gt: dict[str, Any],
+    results: Sequence[dict[str, Any]],
+    max_fa_per_image: float = 0.2,
+    category_id: int = CRATER_ID,
+) -> float:
+    """Lowest score threshold whose false alarms per image stay within ``max_fa_per_image``.
+
+    Use on a validation split. Candidates are the predicted scores themselves, so the choice
+    is exact; the highest Pd under the false-alarm budget is the lowest admissible threshold.
+
+    Returns:
+        the threshold (1.0 when no prediction exists).
+    """
+    scores = sorted({d["score"] for d in results if d["category_id"] == category_id})
+    if not scores:
+        return 1.0
+    lo, hi = 0, len(scores) - 1  # false alarms fall as the threshold rises: bisect
+    if match_craters(gt, results, scores[hi], category_id=category_id).fa_per_image > max_fa_per_image:
+        return float(np.nextafter(scores[hi], np.inf))
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if match_craters(gt, results, scores[mid], category_id=category_id).fa_per_image <= max_fa_per_image:
+            hi = mid
+        else:
+            lo = mid + 1
+    return float(scores[lo])
+
+
+def pd_by(
+    match: MatchResult,
+    key: str,
+    edges: Sequence[float],
+    image_key: dict[int, float] | None = None,
+) -> list[dict[str, Any]]:
+    """Pd in bins of a crater (or image) property.
+
+    Args:
+        match: result of :func:`match_craters`.
+        key: annotation key to bin on (``near_rim_range_m``, ``diameter_m``), or an image key
+            when ``image_key`` maps image ids to that property (sun angles).
+        edges: bin edges; bin i holds ``edges[i] <= value < edges[i + 1]``.
+        image_key: optional image id -> value mapping.
+
+    Returns:
+        one row per bin: ``{"lo", "hi", "n", "detected", "pd"}`` (pd None when n = 0).
+    """
+    values = np.asarray(
+        [image_key[a["image_id"]] if image_key is not None else a.get(key, np.nan) for a in match.gt],
+        dtype=float,
+    )
+    rows = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (values >= lo) & (values < hi)
+        n = int(sel.sum())
+        det = int(match.hit[sel].sum())
+        rows.append({"lo": float(lo), "hi": float(hi), "n": n, "detected": det,
+                     "pd": det / n if n else None})
+    return rows
+
+
+def subset(match: MatchResult, keep: np.ndarray) -> MatchResult:
+    """The same match restricted to the ground-truth craters selected by ``keep``."""
+    keep = np.asarray(keep, dtype=bool)
+    return MatchResult([g for g, k in zip(match.gt, keep) if k], match.hit[keep],
+                       match.false_alarms, match.n_images)

@@ -1,0 +1,127 @@
+"""Detection report like the paper's monocular figures: COCO AP, Pd tables, plots, overlays."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lunarnav_ml.eval.coco_metrics import coco_ap
+from lunarnav_ml.eval.pd import MatchResult, match_craters, pd_by, subset
+from lunarnav_ml.eval.plots import plot_pd_vs_range, plot_pd_vs_sun
+from lunarnav_ml.utils import atomic
+
+RANGE_EDGES = tuple(float(r) for r in range(5, 31, 2))  # near-rim range bins, m (paper: 5-29 m)
+DIAMETER_GROUPS = ((2.0, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 21.0))  # m
+ZENITH_EDGES = (0.0, 10.0, 30.0, 50.0, 70.0, 90.0)  # around the paper's 0/20/40/60/80 deg
+AZIMUTH_EDGES = (0.0, 30.0, 60.0, 90.0, 120.0, 150.0, 180.01)  # folded to 0-180 deg
+
+
+def detection_metrics(
+    gt: dict[str, Any], results: Sequence[dict[str, Any]], threshold: float
+) -> dict[str, Any]:
+    """All detection figures at one operating threshold.
+
+    Args:
+        gt: COCO ground truth with the crater keys of DESIGN.md (``near_rim_range_m``,
+            ``diameter_m``) and image keys ``sun_zenith_deg`` / ``sun_azimuth_deg`` when known.
+        results: COCO results.
+        threshold: operating score threshold (picked on a validation split).
+    """
+    match = match_craters(gt, results, threshold)
+    out: dict[str, Any] = {
+        "threshold": threshold,
+        "coco": coco_ap(gt, list(results)),
+        "n_images": match.n_images,
+        "crater_pd_all": _nan_to_none(match.pd),
+        "false_alarms_per_image": match.fa_per_image,
+        "n_craters": int(match.hit.size),
+    }
+    if match.gt and "near_rim_range_m" in match.gt[0]:
+        out.update(_geometric_tables(gt, match))
+    return out
+
+
+def _geometric_tables(gt: dict[str, Any], match: MatchResult) -> dict[str, Any]:
+    diam = np.asarray([a.get("diameter_m", np.nan) for a in match.gt], dtype=float)
+    rng = np.asarray([a.get("near_rim_range_m", np.nan) for a in match.gt], dtype=float)
+    key_set = subset(match, (diam >= 5.0) & (rng <= 20.0))
+    tables: dict[str, Any] = {
+        "crater_pd_D5_within20m": _nan_to_none(key_set.pd),
+        "n_craters_D5_within20m": int(key_set.hit.size),
+        "pd_vs_range": {
+            f"{lo:g}-{hi:g}": pd_by(subset(match, (diam >= lo) & (diam < hi)), "near_rim_range_m",
+                                    RANGE_EDGES)
+            for lo, hi in DIAMETER_GROUPS
+        },
+    }
+    images = {img["id"]: img for img in gt["images"]}
+    if all("sun_zenith_deg" in img for img in images.values()):
+        zen = {i: float(img["sun_zenith_deg"]) for i, img in images.items()}
+        az = {i: _fold_azimuth(float(img.get("sun_azimuth_deg", 0.0))) for i, img in images.items()}
+        near = subset(match, (diam >= 5.0) & (rng <= 29.0))
+        tables["pd_vs_sun_zenith"] = pd_by(near, "sun_zenith_deg", ZENITH_EDGES, zen)
+        tables["pd_vs_sun_azimuth"] = pd_by(near, "sun_azimuth_deg", AZIMUTH_EDGES, az)
+    return tables
+
+
+def _fold_azimuth(az: float) -> float:
+    """Sun azimuth relative to the view direction folded to 0-180 deg (0 = in front)."""
+    az = az % 360.0
+    return 360.0 - az if az > 180.0 else az
+
+
+def _nan_to_none(x: float) -> float | None:
+    return None if x != x else float(x)
+
+
+def write_report(metrics: dict[str, Any], out_dir: Path, title: str) -> dict[str, Path]:
+    """Write metrics.json, report.md and the Pd plots into ``out_dir``."""
+    out_dir = Path(out_dir)
+    files = {"metrics": atomic.write_json(out_dir / "metrics.json", metrics)}
+    if "pd_vs_range" in metrics:
+        files["pd_vs_range"] = plot_pd_vs_range(metrics["pd_vs_range"], out_dir / "pd_vs_range.png")
+    if "pd_vs_sun_zenith" in metrics:
+        files["pd_vs_sun"] = plot_pd_vs_sun(metrics["pd_vs_sun_zenith"],
+                                            metrics["pd_vs_sun_azimuth"], out_dir / "pd_vs_sun.png")
+    files["report"] = atomic.write_text(out_dir / "report.md", render_markdown(metrics, title))
+    return files
+
+
+def render_markdown(metrics: dict[str, Any], title: str) -> str:
+    """The report's markdown: COCO AP per class, Pd summary and the Pd tables."""
+    lines = [f"# {title}", "", "## COCO (pycocotools)", "",
+             "| class | AP@[.5:.95] | AP50 | ground truths |", "|---|---|---|---|"]
+    for name, row in metrics["coco"]["per_class"].items():
+        lines.append(f"| {name} | {_fmt(row['AP'])} | {_fmt(row['AP50'])} | {row['n_gt']} |")
+    lines += ["", f"Operating threshold (picked on the validation split): {metrics['threshold']:.3f}",
+              "", "## Crater Pd (IoU >= 0.5)", "",
+              f"- all non-ignored craters: Pd {_fmt(metrics['crater_pd_all'])} "
+              f"(n = {metrics['n_craters']})",
+              f"- false alarms per image: {metrics['false_alarms_per_image']:.3f}"]
+    if "crater_pd_D5_within20m" in metrics:
+        lines.append(f"- craters D >= 5 m, near rim <= 20 m: Pd {_fmt(metrics['crater_pd_D5_within20m'])}"
+                     f" (n = {metrics['n_craters_D5_within20m']})")
+        lines += ["", "## Pd vs near-rim range", ""] + _range_table(metrics["pd_vs_range"])
+    for key, label in (("pd_vs_sun_zenith", "sun zenith"), ("pd_vs_sun_azimuth", "sun azimuth")):
+        if key in metrics:
+            lines += ["", f"## Pd vs {label} (craters D >= 5 m within 29 m)", "",
+                      f"| {label} (deg) | n | Pd |", "|---|---|---|"]
+            lines += [f"| {r['lo']:g}-{r['hi']:g} | {r['n']} | {_fmt(r['pd'])} |" for r in metrics[key]]
+    return "\n".join(lines) + "\n"
+
+
+def _range_table(pd_vs_range: dict[str, list[dict[str, Any]]]) -> list[str]:
+    groups = list(pd_vs_range)
+    head = "| near-rim range (m) | " + " | ".join(f"D {g} m: Pd (n)" for g in groups) + " |"
+    lines = [head, "|---" * (len(groups) + 1) + "|"]
+    for i, row in enumerate(pd_vs_range[groups[0]]):
+        cells = [f"{_fmt(pd_vs_range[g][i]['pd'])} ({pd_vs_range[g][i]['n']})" for g in groups]
+        lines.append(f"| {row['lo']:g}-{row['hi']:g} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _fmt(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.3f}"

@@ -1,0 +1,1 @@
+"""ONNX export, int8 quantization and latency benchmarks of the detector."""

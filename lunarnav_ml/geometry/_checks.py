@@ -1,0 +1,78 @@
+"""Argument checks shared by the geometry functions: wrong shapes and NaNs raise InputError."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from lunarnav_ml.errors import InputError
+
+
+def as_array(
+    name: str,
+    value: object,
+    shape: Sequence[int | None],
+    *,
+    dtype: type = np.float64,
+    allow_nan: bool = False,
+) -> np.ndarray:
+    """Convert ``value`` to an array of the given shape, or raise InputError naming ``name``.
+
+    Args:
+        name: argument name used in the error message.
+        value: anything ``np.asarray`` accepts.
+        shape: expected shape; ``None`` matches any length on that axis.
+        dtype: dtype of the returned array.
+        allow_nan: when False, NaN or inf entries raise.
+
+    Returns:
+        The converted array.
+    """
+    try:
+        arr = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: cannot convert to a {dtype.__name__} array ({exc})") from None
+    expected = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+    if arr.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, arr.shape)):
+        raise InputError(f"{name}: expected shape {expected}, got {tuple(arr.shape)}")
+    if not allow_nan and np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
+        raise InputError(f"{name}: contains NaN or inf (shape {tuple(arr.shape)})")
+    return arr
+
+
+def as_points(name: str, value: object, dim: int, *, allow_nan: bool = False) -> np.ndarray:
+    """Convert ``value`` to an (N, dim) float64 array; a single (dim,) point becomes (1, dim).
+
+    Raises:
+        InputError: wrong shape or non-finite values.
+    """
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 1 and arr.shape[0] == dim:
+        arr = arr[None, :]
+    return as_array(name, arr, (None, dim), allow_nan=allow_nan)
+
+
+def as_image(name: str, value: object) -> np.ndarray:
+    """Check an HxW (gray) or HxWx3 image and return it as an HxW uint8 gray image.
+
+    Float images are expected in [0, 1] and scaled to 0..255.
+
+    Raises:
+        InputError: wrong rank/channels or non-finite values.
+    """
+    arr = np.asarray(value)
+    if arr.ndim == 3 and arr.shape[2] == 3:
+        if arr.dtype == np.uint8:
+            return np.rint(arr.astype(np.float32).mean(axis=2)).astype(np.uint8)
+        arr = np.asarray(arr, dtype=np.float64).mean(axis=2)
+    if arr.ndim != 2:
+        raise InputError(f"{name}: expected shape (H, W) or (H, W, 3), got {tuple(np.shape(value))}")
+    if arr.dtype == np.uint8:
+        return arr
+    arr = np.asarray(arr, dtype=np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name}: contains NaN or inf (shape {tuple(arr.shape)})")
+    if arr.size and arr.max() <= 1.0:
+        arr = arr * 255.0
+    return np.clip(np.rint(arr), 0, 255).astype(np.uint8)

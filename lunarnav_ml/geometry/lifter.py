@@ -1,0 +1,454 @@
+"""Range lifter: image rim ellipse + disparity map -> crater center and diameter in the rover frame.
+
+Default method, "tangent" (no terrain model):
+
+1. Bearings. Every ellipse point is a ray; its horizontal bearing in the rover frame does not
+   depend on heights. The extreme bearings are the tangents from the camera to the (horizontal
+   projection of the) rim circle: center bearing phi and half-width alpha are exact angles.
+   A circle seen this way has center at distance rho along phi and radius rho sin(alpha).
+2. Scale from stereo. The near-side rim samples (below the ellipse center line in the image)
+   get a disparity each, extrapolated along the image column from the rows just below the rim
+   (toward the camera: the side continuous with the crest, outside the matcher's smearing of
+   the crest's depth edge). The near-side ray at bearing theta meets the circle at horizontal
+   range rho k(theta) with k known from the angles, so d_i = f B |q_i,h| / (rho k_i): one
+   parameter 1 / rho fitted robustly (Huber IRLS) in disparity space, where matcher noise is
+   uniform. Many rim pixels feed one number, so per-pixel noise averages out.
+3. Center (rho cos phi, rho sin phi, median rim height), diameter 2 rho sin(alpha); covariance
+   of (x, y, z, D) propagated to first order from rho (the IRLS fit, inflated for neighbouring
+   samples sharing matcher windows) and the two tangent bearings (ellipse sigma / f).
+
+Alternative "plane" (level terrain): rim rays cut a rim plane parallel to the ground, the
+ground fitted in (u, v, d) space on the terrain in front of the crater and the rim height from
+the near-rim disparities; exact for level ground and a known pose, fragile with relief.
+
+Fits that do not hold together are rejected with a reason: too little valid disparity, a ground
+plane far from the rig's expected one, rim disparities that disagree with the model
+(robust residual over ``max_rim_residual_px``), rim points that do not form a circle.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.geometry.ellipse import Ellipse
+from lunarnav_ml.geometry.frames import StereoRig
+
+
+@dataclass(frozen=True)
+class LiftResult:
+    """A crater lifted to 3D (rover frame: x forward, y left, z up, m).
+
+    Attributes:
+        ok: True when the fit passed every consistency check.
+        reason: "ok" or why the crater was rejected.
+        center_m: (3,) rim-circle center; NaN when not ok.
+        diameter_m: rim diameter; NaN when not ok.
+        covariance: (4, 4) covariance of (x, y, z, D), m^2; NaN when not ok.
+        rim_points_m: (N, 3) rim points on the rim plane (empty when not ok).
+        rim_height_m: rim crest above the local ground plane.
+        n_ground: valid disparities used for the ground plane.
+        n_rim: valid disparities used for the rim plane.
+        rim_residual_px: robust std of the rim disparities about the rim plane, px.
+    """
+
+    ok: bool
+    reason: str
+    center_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    diameter_m: float = float("nan")
+    covariance: np.ndarray = field(default_factory=lambda: np.full((4, 4), np.nan))
+    rim_points_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    rim_height_m: float = float("nan")
+    n_ground: int = 0
+    n_rim: int = 0
+    rim_residual_px: float = float("nan")
+
+    @property
+    def horizontal_sigma_m(self) -> float:
+        """sqrt of the larger eigenvalue of the horizontal (x, y) center covariance, m."""
+        if not self.ok:
+            return float("nan")
+        return float(np.sqrt(np.linalg.eigvalsh(self.covariance[:2, :2]).max()))
+
+
+@dataclass(frozen=True)
+class LifterConfig:
+    """Settings of :func:`lift_crater` (defaults suit the paper's 1024 px, 90 deg rig).
+
+    Attributes:
+        method: "tangent" (default): bearings from the ellipse, one scale from the rim's
+            stereo; no terrain model, copes with relief. "plane": rim rays cut a rim plane
+            parallel to the ground (level terrain only; the rig's pose must be exact).
+        n_rim: rays sampled on the ellipse.
+        tri_side: "tangent" uses rim samples below the ellipse center line by more than
+            this fraction of its half height (negative: the sides too; the far rim borders
+            the often shadowed inner wall and a depth edge, so it is left out).
+        corr_factor: variance inflation for neighbouring rim samples sharing matcher windows.
+        ground_gap: rows skipped below the ellipse before the ground patch, times its height.
+        ground_rows: the ground patch ends this many ellipse heights (+ 30 px) below it.
+        near_side: rim samples used for the rim height lie below the ellipse center by more
+            than this fraction of its half height (the near rim, whose crest is continuous with
+            the lit outer flank; the far rim borders the often shadowed inner wall).
+        ground_normal: "rig": the ground normal is the rig's vertical (level terrain, the pose
+            from the camera record; the stereo fit of the tilt only gates ``max_tilt_deg``);
+            "stereo": the normal fitted to the terrain patch (sloped terrain, noisier).
+        max_ground: ground disparities used at most (evenly subsampled).
+        min_ground: fewest valid ground disparities.
+        min_rim: fewest valid rim samples.
+        max_tilt_deg: largest angle between the fitted ground normal and the rig's vertical.
+        max_rim_residual_px: largest robust std of rim disparities about the rim plane, px.
+        max_radial_rms: largest RMS radial residual of the rim circle, fraction of its radius.
+        ellipse_sigma_px: 1-sigma of the ellipse center and semi-axes, px.
+        rim_height_sigma_m: 1-sigma floor on the rim height (model error), m.
+    """
+
+    method: str = "tangent"
+    n_rim: int = 72
+    tri_side: float = 0.2
+    corr_factor: float = 2.0
+    ground_gap: float = 0.5
+    ground_rows: float = 4.0
+    near_side: float = 0.2
+    ground_normal: str = "rig"
+    max_ground: int = 4000
+    min_ground: int = 30
+    min_rim: int = 8
+    max_tilt_deg: float = 25.0
+    max_rim_residual_px: float = 1.5
+    max_radial_rms: float = 0.1
+    ellipse_sigma_px: float = 0.5
+    rim_height_sigma_m: float = 0.02
+
+
+@dataclass(frozen=True)
+class _Plane:
+    """n . X = c in the camera frame; g = f B n / c; cov_g the (3, 3) covariance of g."""
+
+    g: np.ndarray
+    cov_g: np.ndarray
+    n_used: int
+
+
+def lift_crater(
+    ellipse: Ellipse,
+    disparity: np.ndarray,
+    rig: StereoRig,
+    config: LifterConfig | None = None,
+) -> LiftResult:
+    """Lift an image rim ellipse to a crater center and diameter in the rover frame.
+
+    Args:
+        ellipse: rim ellipse in the rectified left image, px.
+        disparity: left-reference disparity, px; NaN or <= 0 marks invalid pixels.
+        rig: the rectified rig and its pose on the rover.
+        config: thresholds and noise levels (defaults: :class:`LifterConfig`).
+
+    Returns:
+        LiftResult; ``ok`` False with a ``reason`` for rejected or impossible fits.
+
+    Raises:
+        InputError: ``disparity`` is not a 2-D array.
+
+    Shape:
+        disparity: (H, W).
+    """
+    cfg = config or LifterConfig()
+    disp = _check_disparity(disparity)
+    ell = ellipse.to_array()
+    if not (np.all(np.isfinite(ell)) and ellipse.a > 0 and ellipse.b > 0):
+        return LiftResult(False, "invalid_ellipse")
+    if cfg.method == "tangent":
+        return _lift_tangent(ellipse, disp, rig, cfg)
+    if cfg.method != "plane":
+        raise InputError(f"config.method: expected 'tangent' or 'plane', got {cfg.method!r}")
+    plane = _fit_ground(disp, ellipse, rig, cfg)
+    if isinstance(plane, str):
+        return LiftResult(False, plane)
+    rim = _fit_rim_plane(disp, ellipse, rig, plane, cfg)
+    if isinstance(rim, str):
+        return LiftResult(False, rim, n_ground=plane.n_used)
+    s, var_s, n_rim, resid = rim
+    solve = _make_solver(rig, cfg.n_rim)
+    sol = solve(np.concatenate([ell, plane.g, [s]]))
+    if sol is None:
+        return LiftResult(False, "rim_above_horizon", n_ground=plane.n_used, n_rim=n_rim)
+    center, diam, rim_pts, radial_rms = sol
+    c_ground = 1.0 / np.linalg.norm(plane.g) * rig.focal_px * rig.baseline_m
+    rim_h = float(c_ground - 1.0 / s)
+    base = dict(n_ground=plane.n_used, n_rim=n_rim, rim_residual_px=resid, rim_height_m=rim_h)
+    reason = _consistency(rim_h, diam, radial_rms, resid, cfg)
+    if reason != "ok":
+        return LiftResult(False, reason, **base)
+    cov = _covariance(solve, ellipse, plane, s, var_s, rig, cfg)
+    return LiftResult(True, "ok", center, diam, cov, rim_pts, **base)
+
+
+def _check_disparity(disparity: np.ndarray) -> np.ndarray:
+    d = np.asarray(disparity, dtype=np.float64)
+    if d.ndim != 2:
+        raise InputError(f"disparity: expected shape (H, W), got {tuple(d.shape)}")
+    return np.where(d > 0, d, np.nan)  # NaN, inf-free: non-positive and NaN are invalid
+
+
+def _ellipse_mask(shape: tuple[int, int], ell: Ellipse, scale: float) -> np.ndarray:
+    """Pixels inside the ellipse scaled about its center by ``scale``."""
+    h, w = shape
+    vv, uu = np.mgrid[0:h, 0:w]
+    t = np.radians(ell.angle_deg)
+    du, dv = uu - ell.cx, vv - ell.cy
+    x = np.cos(t) * du + np.sin(t) * dv
+    y = -np.sin(t) * du + np.cos(t) * dv
+    return (x / (scale * ell.a)) ** 2 + (y / (scale * ell.b)) ** 2 <= 1.0
+
+
+def _ground_window(shape: tuple[int, int], ell: Ellipse, cfg: LifterConfig) -> tuple[int, ...]:
+    """Rows and columns (v0, v1, u0, u1) of the terrain patch in front of and beside the crater."""
+    x, y, w, h = ell.bbox()
+    v0 = int(np.ceil(y + h + cfg.ground_gap * h + 2))
+    v1 = int(np.ceil(y + h + cfg.ground_rows * h + 30))
+    u0, u1 = int(np.floor(x - 0.5 * w)), int(np.ceil(x + 1.5 * w))
+    return max(v0, 0), min(v1, shape[0]), max(u0, 0), min(u1, shape[1])
+
+
+def _fit_ground(disp: np.ndarray, ell: Ellipse, rig: StereoRig, cfg: LifterConfig) -> _Plane | str:
+    """Robust fit of d = g . q on the terrain just in front of (below, in the image) the crater.
+
+    The patch spans many image rows, so the plane's tilt is well conditioned; it starts a gap
+    below the rim ellipse to keep the raised outer flank out.
+    """
+    v0, v1, u0, u1 = _ground_window(disp.shape, ell, cfg)
+    if v1 - v0 < 2 or u1 - u0 < 2:
+        return "insufficient_ground_disparity"
+    sub = disp[v0:v1, u0:u1]
+    vv, uu = np.nonzero(np.isfinite(sub))
+    if len(uu) > cfg.max_ground:  # an even subsample keeps the fit's cost bounded
+        keep = np.linspace(0, len(uu) - 1, cfg.max_ground).astype(int)
+        vv, uu = vv[keep], uu[keep]
+    if len(uu) < cfg.min_ground:
+        return "insufficient_ground_disparity"
+    q = rig.rays(np.column_stack([uu + u0, vv + v0]))
+    g, cov, n_used = _robust_linear(q, sub[vv, uu])
+    if g is None or n_used < cfg.min_ground:
+        return "insufficient_ground_disparity"
+    down_cam = rig.rotation.T @ np.array([0.0, 0.0, -1.0])
+    cos_tilt = float(g @ down_cam / np.linalg.norm(g))
+    if cos_tilt < np.cos(np.radians(cfg.max_tilt_deg)):
+        return "ground_plane_inconsistent"
+    if cfg.ground_normal == "rig":
+        a = rig.focal_px * rig.baseline_m * (q @ down_cam)
+        s_vec, var, n_used = _robust_linear(a[:, None], sub[vv, uu])
+        if s_vec is None or s_vec[0] <= 0:
+            return "ground_plane_inconsistent"
+        scale = rig.focal_px * rig.baseline_m
+        g, cov = scale * s_vec[0] * down_cam, scale**2 * var[0, 0] * np.outer(down_cam, down_cam)
+    return _Plane(g, cov, n_used)
+
+
+def _robust_linear(a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, int]:
+    """IRLS (Huber) solution of a @ g = d; returns g, its covariance and the inlier count."""
+    w = np.ones(len(d))
+    g = None
+    for _ in range(5):
+        sw = np.sqrt(w)
+        g, *_ = np.linalg.lstsq(a * sw[:, None], d * sw, rcond=None)
+        r = d - a @ g
+        sigma = max(1.4826 * float(np.median(np.abs(r))), 0.05)
+        k = 1.5 * sigma
+        w = np.where(np.abs(r) <= k, 1.0, k / np.maximum(np.abs(r), 1e-12))
+        w[np.abs(r) > 4 * sigma] = 0.0
+    inl = w > 0
+    ata = (a[inl] * w[inl, None]).T @ a[inl]
+    if g is None or np.linalg.cond(ata) > 1e12:
+        return None, np.full((3, 3), np.nan), 0
+    return g, sigma**2 * np.linalg.inv(ata), int(inl.sum())
+
+
+def _rim_disparities(
+    disp: np.ndarray, pts: np.ndarray, offsets: tuple[int, int] = (2, 8)
+) -> np.ndarray:
+    """Disparity at each rim point, extrapolated along its image column from the rows just
+    below it (toward the camera, the side continuous with the rim crest: the outer flank at the
+    near rim, the inner wall at the far rim). Skipping the first rows keeps the matcher's
+    smearing across the crest's depth discontinuity out of the estimate. NaN where fewer than
+    3 rows are valid.
+
+    Shape:
+        disp: (H, W); pts: (N, 2) px -> (N,) px.
+    """
+    h, w = disp.shape
+    out = np.full(len(pts), np.nan)
+    rows = np.arange(offsets[0], offsets[1] + 1)
+    for i, (u, v) in enumerate(pts):
+        col, r = int(round(u)), np.floor(v).astype(int) + rows
+        if not (0 <= col < w) or r[0] < 0 or r[0] >= h:
+            continue
+        r = r[r < h]
+        vals = disp[r, col]
+        ok = np.isfinite(vals)
+        if ok.sum() < 3:
+            continue
+        slope, icpt = np.polyfit(r[ok].astype(float), vals[ok], 1)
+        out[i] = slope * v + icpt
+    return out
+
+
+def _fit_rim_plane(
+    disp: np.ndarray, ell: Ellipse, rig: StereoRig, plane: _Plane, cfg: LifterConfig
+) -> tuple[float, float, int, float] | str:
+    """Fit s = 1 / (c - h_r) to the rim disparities; returns s, var(s), n used, residual px."""
+    pts = ell.points(cfg.n_rim)
+    _, y, _, h = ell.bbox()
+    pts = pts[pts[:, 1] - (y + h / 2) > cfg.near_side * h / 2]
+    d = _rim_disparities(disp, pts)
+    ok = np.isfinite(d)
+    if ok.sum() < cfg.min_rim:
+        return "insufficient_rim_disparity"
+    a = rig.rays(pts[ok]) @ plane.g * (np.linalg.norm(plane.g) ** -1) * rig.focal_px * rig.baseline_m
+    if np.any(a <= 0):
+        return "rim_above_horizon"
+    s_vec, cov, n_used = _robust_linear(a[:, None], d[ok])
+    if s_vec is None or n_used < cfg.min_rim or s_vec[0] <= 0:
+        return "insufficient_rim_disparity"
+    resid = d[ok] - a * s_vec[0]
+    rstd = 1.4826 * float(np.median(np.abs(resid)))
+    return float(s_vec[0]), float(cov[0, 0]), n_used, rstd
+
+
+_Solution = tuple[np.ndarray, float, np.ndarray, float]
+
+
+def _make_solver(rig: StereoRig, n_rim: int) -> Callable[[np.ndarray], _Solution | None]:
+    """Function of (ellipse 5, g 3, s) -> (center (3,), diameter, rim points, radial RMS)."""
+    rot = rig.rotation
+    origin = np.array([0.0, 0.0, rig.height_m])
+
+    def solve(p: np.ndarray) -> _Solution | None:
+        ell = Ellipse(*p[:5])
+        n = p[5:8] / np.linalg.norm(p[5:8])
+        q = rig.rays(ell.points(n_rim))
+        nq = q @ n
+        if np.any(nq <= 1e-9):
+            return None
+        pts_cam = q / (p[8] * nq)[:, None]
+        pts = pts_cam @ rot.T + origin
+        n_rov = rot @ n
+        center, radius, rms = _fit_circle_in_plane(pts, n_rov)
+        return center, 2.0 * radius, pts, rms
+
+    return solve
+
+
+def _fit_circle_in_plane(pts: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Algebraic (Kasa) circle fit in the plane with this normal; returns center, radius and
+    the RMS radial residual as a fraction of the radius."""
+    e1 = np.cross(normal, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    mean = pts.mean(axis=0)
+    xy = np.column_stack([(pts - mean) @ e1, (pts - mean) @ e2])
+    a = np.column_stack([xy, np.ones(len(xy))])
+    sol, *_ = np.linalg.lstsq(a, (xy**2).sum(axis=1), rcond=None)
+    c2 = sol[:2] / 2.0
+    radius = float(np.sqrt(max(sol[2] + c2 @ c2, 0.0)))
+    rms = float(np.sqrt(np.mean((np.linalg.norm(xy - c2, axis=1) - radius) ** 2)))
+    return mean + c2[0] * e1 + c2[1] * e2, radius, rms / max(radius, 1e-9)
+
+
+def _consistency(rim_h: float, diam: float, radial_rms: float, resid: float,
+                 cfg: LifterConfig) -> str:
+    """Reason to reject a fit, or "ok"."""
+    if not (np.isfinite(diam) and diam > 0):
+        return "degenerate_circle"
+    if not -0.1 * diam - 0.3 <= rim_h <= 0.3 * diam + 0.3:
+        return "rim_height_inconsistent"
+    if radial_rms > cfg.max_radial_rms:
+        return "non_circular_rim"
+    if resid > cfg.max_rim_residual_px:
+        return "stereo_inconsistent"
+    return "ok"
+
+
+def _covariance(
+    solve: Callable[[np.ndarray], _Solution | None], ell: Ellipse, plane: _Plane, s: float,
+    var_s: float, rig: StereoRig, cfg: LifterConfig,
+) -> np.ndarray:
+    """Covariance of (x, y, z, D) by first-order propagation with central differences."""
+    sig = cfg.ellipse_sigma_px
+    p0 = np.concatenate([ell.to_array(), plane.g, [s]])
+    cov_in = np.zeros((9, 9))
+    cov_in[:5, :5] = np.diag([sig**2, sig**2, sig**2, sig**2,
+                              np.degrees(sig / max(ell.a, ell.b)) ** 2])
+    cov_in[5:8, 5:8] = plane.cov_g
+    # rim height floor: dh = d(1/s) = -ds / s^2  ->  var_s >= (s^2 sigma_h)^2
+    cov_in[8, 8] = var_s + (s**2 * cfg.rim_height_sigma_m) ** 2
+    steps = np.concatenate([[0.05] * 4, [0.05], np.abs(plane.g) * 1e-4 + 1e-9, [s * 1e-4]])
+    jac = np.zeros((4, 9))
+    for j in range(9):
+        dp = np.zeros(9)
+        dp[j] = steps[j]
+        hi, lo = solve(p0 + dp), solve(p0 - dp)
+        if hi is None or lo is None:
+            return np.full((4, 4), np.nan)
+        jac[:, j] = (np.append(hi[0], hi[1]) - np.append(lo[0], lo[1])) / (2 * steps[j])
+    return jac @ cov_in @ jac.T
+
+
+def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterConfig) -> LiftResult:
+    """Bearings from the ellipse, scale from stereo (see the module docstring, "tangent")."""
+    pts = ell.points(cfg.n_rim)
+    q = rig.rays(pts)
+    hor = (q @ rig.rotation.T)[:, :2]  # rover-frame horizontal components of the rays
+    theta = np.unwrap(np.arctan2(hor[:, 1], hor[:, 0]))
+    t_lo, t_hi = float(theta.min()), float(theta.max())
+    alpha, phi = 0.5 * (t_hi - t_lo), 0.5 * (t_hi + t_lo)
+    if not 1e-4 < alpha < np.radians(80):
+        return LiftResult(False, "degenerate_circle")
+    _, y, _, h = ell.bbox()
+    near = pts[:, 1] - (y + h / 2) > cfg.tri_side * h / 2
+    d = _rim_disparities(disp, pts[near])
+    ok = np.isfinite(d) & (d > 0)
+    if ok.sum() < cfg.min_rim:
+        return LiftResult(False, "insufficient_rim_disparity", n_rim=int(ok.sum()))
+    delta = theta[near][ok] - phi
+    k = np.cos(delta) - np.sqrt(np.clip(np.sin(alpha) ** 2 - np.sin(delta) ** 2, 0.0, None))
+    # d_i = f B |q_i,h| / (rho k_i): linear in 1 / rho
+    coef = rig.focal_px * rig.baseline_m * np.linalg.norm(hor[near][ok], axis=1) / k
+    inv, var, n_used = _robust_linear(coef[:, None], d[ok])
+    if inv is None or inv[0] <= 0 or n_used < cfg.min_rim:
+        return LiftResult(False, "insufficient_rim_disparity", n_rim=int(ok.sum()))
+    rho = 1.0 / inv[0]
+    resid = d[ok] - coef * inv[0]
+    rstd = 1.4826 * float(np.median(np.abs(resid)))
+    cam = q[near][ok] * (rig.focal_px * rig.baseline_m / d[ok])[:, None]
+    rover = rig.to_rover(cam)
+    z = float(np.median(rover[:, 2]))
+    center = np.array([rho * np.cos(phi), rho * np.sin(phi), z])
+    diam = 2.0 * rho * np.sin(alpha)
+    base = dict(n_rim=n_used, rim_residual_px=rstd, rim_height_m=z)
+    if rstd > cfg.max_rim_residual_px:
+        return LiftResult(False, "stereo_inconsistent", **base)
+    cov = _tangent_covariance(rho, var[0, 0] * rho**4 * cfg.corr_factor, phi, alpha, rover, cfg,
+                              rig.focal_px)
+    return LiftResult(True, "ok", center, diam, cov, rover, **base)
+
+
+def _tangent_covariance(rho: float, var_rho: float, phi: float, alpha: float, rover: np.ndarray,
+                        cfg: LifterConfig, focal_px: float) -> np.ndarray:
+    """First-order covariance of (x, y, z, D) from rho, phi, alpha and the rim heights."""
+    var_t = 0.5 * (cfg.ellipse_sigma_px / focal_px) ** 2  # one tangent bearing, halved
+    jac = np.array([
+        [np.cos(phi), -rho * np.sin(phi), 0.0],
+        [np.sin(phi), rho * np.cos(phi), 0.0],
+        [2 * np.sin(alpha), 0.0, 2 * rho * np.cos(alpha)],
+    ])  # rows: x, y, D; columns: rho, phi, alpha
+    cov3 = jac @ np.diag([var_rho, var_t, var_t]) @ jac.T
+    z = rover[:, 2]
+    var_z = (1.4826 * float(np.median(np.abs(z - np.median(z))))) ** 2 / len(z) * cfg.corr_factor
+    cov = np.zeros((4, 4))
+    idx = [0, 1, 3]
+    cov[np.ix_(idx, idx)] = cov3
+    cov[2, 2] = var_z + cfg.rim_height_sigma_m**2
+    return cov

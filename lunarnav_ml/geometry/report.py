@@ -1,0 +1,362 @@
+"""Geometry evaluation on a stereo dataset: ellipse fit + SGBM + lift per labelled crater,
+the paper's 3-sigma tables, Pd(3D) vs range, and plots.
+
+Per image: StereoSGBM on the (rectified) pair once. Per labelled crater (non-ignored, diameter
+at least ``min_diameter_m``): a box (the label's, or the best-scoring detection with IoU >= 0.5
+when COCO results are given), an ellipse (fitted in the box by default), the lift to the rover
+frame, and the errors against the label's rim-circle center (``center_cam_m`` moved to the
+rover frame with the image's ``camera`` record) and ``diameter_m``.
+
+Figures (DESIGN.md protocol): the paper's sigma_p is the spread of the horizontal center
+error; here 3-sigma = 3 x RMS of the horizontal error length (bias included, so it is never
+flattering), and likewise 3 x RMS of the diameter error. Pd(3D): the estimated center lies within
+max(1 m, 0.25 D) of the truth; a crater with no estimate (no detection, no ellipse, lift
+rejected) counts as a miss.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.geometry.ellipse import Ellipse, EllipseFitter
+from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
+from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater
+from lunarnav_ml.geometry.stereo import SGBMStereo
+from lunarnav_ml.utils.atomic import write_figure, write_json, write_text
+
+PAPER_STEREO_3SIGMA_M = {5: 1.02, 10: 3.22, 15: 4.48, 20: 4.35}
+PAPER_LIDAR_3SIGMA_M = {5: 0.28, 10: 1.04, 15: 1.77, 20: 1.94}
+KPP_M = 2.0  # 3-sigma position and diameter error for 5 m craters at 15 m
+NEAR_RANGE_M = (15.0, 20.0)  # the paper's window for its 3-sigma tables
+ELLIPSE_SOURCES = ("fit", "label", "box")
+
+
+def geometry_report(
+    dataset_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    detections: str | Path | list[dict[str, Any]] | None = None,
+    score_threshold: float = 0.0,
+    ellipse_source: str = "fit",
+    min_diameter_m: float = 4.5,
+    max_images: int | None = None,
+    stereo: SGBMStereo | None = None,
+    lifter: LifterConfig | None = None,
+    fitter: EllipseFitter | None = None,
+    plots: bool = True,
+) -> dict[str, Any]:
+    """Evaluate crater geometry (3D center and diameter) on a stereo dataset folder.
+
+    Args:
+        dataset_dir: dataset root holding ``annotations.json`` (or the annotations file).
+        out_dir: where ``geometry_metrics.json``, ``geometry_craters.json``,
+            ``geometry_report.md`` and the PNG plots go.
+        detections: COCO results (path or list); None evaluates on the labelled boxes.
+        score_threshold: detections below this score are ignored.
+        ellipse_source: "fit" (the ellipse fitter in the box), "label" (the labelled ellipse:
+            isolates stereo + lift) or "box" (the ellipse inscribed in the box).
+        min_diameter_m: smaller labelled craters are not evaluated.
+        max_images: evaluate only the first N stereo images.
+        stereo, lifter, fitter: settings (defaults: SGBM sized to the image, LifterConfig(),
+            EllipseFitter()).
+        plots: write the PNG plots.
+
+    Returns:
+        The metrics dict written to ``geometry_metrics.json``.
+
+    Raises:
+        InputError: missing annotations or images, no stereo pairs, a bad ``ellipse_source``.
+    """
+    if ellipse_source not in ELLIPSE_SOURCES:
+        raise InputError(f"ellipse_source: expected one of {ELLIPSE_SOURCES}, got {ellipse_source!r}")
+    ann_path = _annotations_path(dataset_dir)
+    coco = json.loads(ann_path.read_text())
+    images = [im for im in coco.get("images", []) if im.get("right_file") and im.get("camera")]
+    if not images:
+        raise InputError(f"{ann_path}: no image has a right_file and a camera record")
+    images = images[:max_images] if max_images is not None else images
+    dets = _load_detections(detections, score_threshold)
+    by_image = defaultdict(list)
+    for ann in coco.get("annotations", []):
+        if _evaluated(ann, min_diameter_m):
+            by_image[ann["image_id"]].append(ann)
+    settings = _Settings(stereo, lifter or LifterConfig(), fitter or EllipseFitter(), ellipse_source)
+    rows: list[dict[str, Any]] = []
+    for im in images:
+        if by_image.get(im["id"]):
+            rows.extend(_eval_image(ann_path.parent, im, by_image[im["id"]], dets.get(im["id"]),
+                                    settings))
+    metrics = summarize(rows)
+    metrics["settings"] = {"dataset": str(ann_path), "ellipse_source": ellipse_source,
+                           "detections": None if detections is None else "coco_results",
+                           "score_threshold": score_threshold, "min_diameter_m": min_diameter_m,
+                           "n_images": len(images)}
+    _write_outputs(Path(out_dir), metrics, rows, plots)
+    return metrics
+
+
+class _Settings:
+    def __init__(self, stereo: SGBMStereo | None, lifter: LifterConfig, fitter: EllipseFitter,
+                 source: str) -> None:
+        self.stereo, self.lifter, self.fitter, self.source = stereo, lifter, fitter, source
+
+
+def _annotations_path(dataset_dir: str | Path) -> Path:
+    path = Path(dataset_dir)
+    path = path / "annotations.json" if path.is_dir() else path
+    if not path.is_file():
+        raise InputError(f"{path}: annotations file not found")
+    return path
+
+
+def _evaluated(ann: dict[str, Any], min_diameter_m: float) -> bool:
+    return (ann.get("category_id") == 1 and not ann.get("ignore", False)
+            and not ann.get("iscrowd", 0) and float(ann.get("diameter_m", 0.0)) >= min_diameter_m
+            and "center_cam_m" in ann)
+
+
+def _load_detections(
+    detections: str | Path | list[dict[str, Any]] | None, threshold: float
+) -> dict[int, list[dict[str, Any]]]:
+    if detections is None:
+        return {}
+    if isinstance(detections, (str, Path)):
+        path = Path(detections)
+        if not path.is_file():
+            raise InputError(f"{path}: detections file not found")
+        detections = json.loads(path.read_text())
+    out: dict[int, list[dict[str, Any]]] = defaultdict(list)
+    for det in detections:
+        if det.get("category_id") == 1 and float(det.get("score", 1.0)) >= threshold:
+            out[det["image_id"]].append(det)
+    return out
+
+
+def _read_gray(root: Path, rel: str) -> np.ndarray:
+    img = cv2.imread(str(root / rel), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise InputError(f"{root / rel}: cannot read image")
+    return img
+
+
+def _default_stereo(width: int) -> SGBMStereo:
+    """SGBM sized to the image: 128 disparities at 1024 px (ground ~1.2 m ahead at 0.3 m)."""
+    return SGBMStereo(num_disparities=int(max(32, 16 * round(width / 128))))
+
+
+def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
+                dets: list[dict[str, Any]] | None, cfg: _Settings) -> list[dict[str, Any]]:
+    """Disparity once, then one row per labelled crater."""
+    left, right = _read_gray(root, im["file_name"]), _read_gray(root, im["right_file"])
+    rig = StereoRig.from_camera_record(im["camera"])
+    t0 = time.perf_counter()
+    rows_needed = _rows_needed(anns, left.shape[0], cfg.lifter)
+    disp = (cfg.stereo or _default_stereo(left.shape[1]))(left, right, rows_needed).disparity
+    stereo_s = time.perf_counter() - t0
+    rows = []
+    for ann in anns:
+        row = _eval_crater(left, disp, rig, ann, _box_for(ann, dets), cfg)
+        row.update(image_id=im["id"], stereo_s=stereo_s,
+                   sun_zenith_deg=im.get("sun_zenith_deg"), sun_azimuth_deg=im.get("sun_azimuth_deg"))
+        rows.append(row)
+    return rows
+
+
+def _rows_needed(anns: list[dict[str, Any]], height: int, lifter: LifterConfig) -> tuple[int, int]:
+    """Image rows the lifter reads for these craters: each box, and the ground patch below."""
+    tops = [a["bbox"][1] for a in anns]
+    bottoms = [a["bbox"][1] + a["bbox"][3] * (1 + lifter.ground_gap + lifter.ground_rows) + 40
+               for a in anns]
+    return max(int(min(tops)) - 10, 0), min(int(max(bottoms)) + 10, height)
+
+
+def _box_for(ann: dict[str, Any], dets: list[dict[str, Any]] | None) -> np.ndarray | None:
+    """The labelled box, or the best-scoring detection with IoU >= 0.5 (None: missed).
+
+    COCO boxes put pixel i on [i, i + 1); the geometry works in pixel-center coordinates, so
+    the box is shifted by -0.5 px.
+    """
+    box = np.asarray(ann["bbox"], dtype=np.float64)
+    if dets is not None:
+        hits = [d for d in dets if _iou(np.asarray(d["bbox"], float), box) >= 0.5]
+        if not hits:
+            return None
+        box = np.asarray(max(hits, key=lambda d: d.get("score", 1.0))["bbox"], dtype=np.float64)
+    return box - np.array([0.5, 0.5, 0.0, 0.0])
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    ix = max(0.0, min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0]))
+    iy = max(0.0, min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1]))
+    inter = ix * iy
+    union = a[2] * a[3] + b[2] * b[3] - inter
+    return inter / union if union > 0 else 0.0
+
+
+def _eval_crater(left: np.ndarray, disp: np.ndarray, rig: StereoRig, ann: dict[str, Any],
+                 box: np.ndarray | None, cfg: _Settings) -> dict[str, Any]:
+    """Fit, lift and score one labelled crater."""
+    diam = float(ann["diameter_m"])
+    truth = camera_to_rover(ann["center_cam_m"], rig.height_m, rig.pitch_deg, rig.roll_deg)[0]
+    row: dict[str, Any] = {"ann_id": ann.get("id"), "diameter_m": diam,
+                           "near_rim_range_m": float(ann.get("near_rim_range_m", np.nan)),
+                           "truth_center_m": truth.tolist(), "ok": False}
+    if box is None:
+        return {**row, "reason": "not_detected"}
+    t0 = time.perf_counter()
+    ellipse, fit_reason, quality = _ellipse(left, box, ann, cfg)
+    t1 = time.perf_counter()
+    if ellipse is None:
+        return {**row, "reason": f"ellipse:{fit_reason}", "fit_s": t1 - t0}
+    res = lift_crater(ellipse, disp, rig, cfg.lifter)
+    t2 = time.perf_counter()
+    row.update(fit_s=t1 - t0, lift_s=t2 - t1, ellipse=ellipse.to_array().tolist(),
+               fit_quality=quality, reason=res.reason if res.ok else f"lift:{res.reason}")
+    if not res.ok:
+        return row
+    err = res.center_m[:2] - truth[:2]
+    return {**row, "ok": True, "center_m": res.center_m.tolist(), "est_diameter_m": res.diameter_m,
+            "center_err_m": float(np.hypot(*err)), "diameter_err_m": res.diameter_m - diam,
+            "sigma_h_m": res.horizontal_sigma_m, "sigma_d_m": float(np.sqrt(res.covariance[3, 3])),
+            "rim_height_m": res.rim_height_m}
+
+
+def _ellipse(left: np.ndarray, box: np.ndarray, ann: dict[str, Any],
+             cfg: _Settings) -> tuple[Ellipse | None, str, float]:
+    if cfg.source == "label":
+        return Ellipse.from_array(ann["ellipse"]), "ok", 1.0
+    if cfg.source == "box":
+        return Ellipse.from_box(box), "ok", 1.0
+    fit = cfg.fitter(left, box)
+    return fit.ellipse, fit.reason, fit.quality
+
+
+def _three_sigma(values: list[float]) -> float | None:
+    arr = np.asarray(values, dtype=np.float64)
+    return float(3.0 * np.sqrt(np.mean(arr**2))) if arr.size else None
+
+
+def _group_stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    ok = [r for r in rows if r["ok"]]
+    hit = [r for r in ok if r["center_err_m"] <= max(1.0, 0.25 * r["diameter_m"])]
+    return {
+        "n": len(rows), "n_lifted": len(ok),
+        "pd_3d": len(hit) / len(rows) if rows else None,
+        "center_3sigma_m": _three_sigma([r["center_err_m"] for r in ok]),
+        "diameter_3sigma_m": _three_sigma([r["diameter_err_m"] for r in ok]),
+        "center_median_m": float(np.median([r["center_err_m"] for r in ok])) if ok else None,
+        "diameter_bias_m": float(np.mean([r["diameter_err_m"] for r in ok])) if ok else None,
+    }
+
+
+def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Metrics of per-crater rows: per diameter (15-20 m window and all ranges), Pd(3D) per
+    near-rim range, failure reasons, timing and covariance calibration."""
+    by_d: dict[float, list] = defaultdict(list)
+    for r in rows:
+        by_d[round(r["diameter_m"], 1)].append(r)
+    lo, hi = NEAR_RANGE_M
+    per_d = {}
+    for d, rs in sorted(by_d.items()):
+        near = [r for r in rs if lo <= r["near_rim_range_m"] <= hi]
+        per_d[str(d)] = {"range_15_20": _group_stats(near), "all_ranges": _group_stats(rs)}
+    by_r: dict[int, list] = defaultdict(list)
+    for r in rows:
+        if np.isfinite(r["near_rim_range_m"]):
+            by_r[int(round(r["near_rim_range_m"]))].append(r)
+    ok = [r for r in rows if r["ok"]]
+    reasons: dict[str, int] = defaultdict(int)
+    for r in rows:
+        reasons[r["reason"]] += 1
+    nees = [r["center_err_m"] / r["sigma_h_m"] for r in ok if r.get("sigma_h_m", 0) > 0]
+    return {
+        "per_diameter": per_d,
+        "pd_3d_vs_range": {str(k): _group_stats(v)["pd_3d"] for k, v in sorted(by_r.items())},
+        "overall": _group_stats(rows),
+        "reasons": dict(reasons),
+        "time_per_crater_ms": {
+            "fit": _mean_ms([r["fit_s"] for r in rows if "fit_s" in r]),
+            "lift": _mean_ms([r["lift_s"] for r in rows if "lift_s" in r]),
+            "stereo_per_image": _mean_ms([r["stereo_s"] for r in rows if "stereo_s" in r]),
+        },
+        "center_err_over_sigma_median": float(np.median(nees)) if nees else None,
+        "paper": {"stereo_3sigma_m": PAPER_STEREO_3SIGMA_M, "lidar_3sigma_m": PAPER_LIDAR_3SIGMA_M,
+                  "kpp_m": KPP_M},
+    }
+
+
+def _mean_ms(values: list[float]) -> float | None:
+    return float(1e3 * np.mean(values)) if values else None
+
+
+def _fmt(x: float | None, nd: int = 2) -> str:
+    return "—" if x is None else f"{x:.{nd}f}"
+
+
+def markdown_table(metrics: dict[str, Any]) -> str:
+    """The 3-sigma table beside the paper's stereo and lidar tables, plus timing and reasons."""
+    lines = [
+        "# Crater geometry: 3D center and diameter from one stereo pair", "",
+        f"Ellipse source: `{metrics['settings']['ellipse_source']}`; images: "
+        f"{metrics['settings']['n_images']}; 3σ = 3 × RMS error (bias included).", "",
+        "| D (m) | n (15–20 m) | lifted | 3σ center 15–20 m (m) | 3σ center all (m) "
+        "| 3σ diameter 15–20 m (m) | paper stereo 3σ | paper lidar 3σ |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for d, st in metrics["per_diameter"].items():
+        near, allr = st["range_15_20"], st["all_ranges"]
+        key = int(round(float(d)))
+        lines.append(
+            f"| {d} | {near['n']} | {near['n_lifted']} | {_fmt(near['center_3sigma_m'])} "
+            f"| {_fmt(allr['center_3sigma_m'])} | {_fmt(near['diameter_3sigma_m'])} "
+            f"| {_fmt(PAPER_STEREO_3SIGMA_M.get(key))} | {_fmt(PAPER_LIDAR_3SIGMA_M.get(key))} |")
+    t = metrics["time_per_crater_ms"]
+    lines += ["", f"Time per crater (1 core): fit {_fmt(t['fit'], 1)} ms, lift "
+              f"{_fmt(t['lift'], 1)} ms; SGBM {_fmt(t['stereo_per_image'], 0)} ms per image.", "",
+              "Pd(3D) vs near-rim range (m): " + ", ".join(
+                  f"{k}: {_fmt(v)}" for k, v in metrics["pd_3d_vs_range"].items()), "",
+              "Outcomes: " + ", ".join(f"{k} {v}" for k, v in sorted(metrics["reasons"].items()))]
+    return "\n".join(lines) + "\n"
+
+
+def _write_outputs(out: Path, metrics: dict[str, Any], rows: list[dict[str, Any]],
+                   plots: bool) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "geometry_metrics.json", metrics)
+    write_json(out / "geometry_craters.json", rows)
+    write_text(out / "geometry_report.md", markdown_table(metrics))
+    if plots:
+        _plots(out, metrics, rows)
+
+
+def _plots(out: Path, metrics: dict[str, Any], rows: list[dict[str, Any]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    ok = [r for r in rows if r["ok"]]
+    for d in sorted({r["diameter_m"] for r in ok}):
+        rs = [r for r in ok if r["diameter_m"] == d]
+        rng = [r["near_rim_range_m"] for r in rs]
+        axes[0].scatter(rng, [r["center_err_m"] for r in rs], s=12, label=f"D={d:g} m")
+        axes[1].scatter(rng, [r["diameter_err_m"] for r in rs], s=12, label=f"D={d:g} m")
+    axes[0].set(xlabel="near-rim range (m)", ylabel="horizontal center error (m)")
+    axes[1].set(xlabel="near-rim range (m)", ylabel="diameter error (m)")
+    pd = metrics["pd_3d_vs_range"]
+    axes[2].plot([int(k) for k in pd], [np.nan if v is None else v for v in pd.values()], "o-")
+    axes[2].set(xlabel="near-rim range (m)", ylabel="Pd (3D)", ylim=(0, 1.05))
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    if ok:
+        axes[0].legend(fontsize=7)
+    write_figure(out / "geometry_errors.png", fig)

@@ -1,0 +1,73 @@
+"""YOLOv4 target assignment: every anchor (of any scale) whose shape IoU with a ground-truth
+box exceeds a threshold is a positive, and the best-matching anchor always is."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from lunarnav_ml.losses.iou import wh_iou
+
+
+@dataclass
+class LevelTargets:
+    """Positives of one scale: where they sit and what they should predict."""
+
+    batch: torch.Tensor  # (P,) image index in the batch
+    anchor: torch.Tensor  # (P,) anchor index within the scale
+    gy: torch.Tensor  # (P,) cell row
+    gx: torch.Tensor  # (P,) cell column
+    boxes: torch.Tensor  # (P, 4) target (cx, cy, w, h) in input pixels
+    classes: torch.Tensor  # (P,) class index 0..K-1
+
+
+def flatten_targets(targets: list[dict[str, torch.Tensor]], device: torch.device
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Stack per-image targets into rows, split into positives and ignore regions.
+
+    Returns:
+        ``gt`` :math:`(M, 6)` rows ``(image, class 0..K-1, cx, cy, w, h)`` of boxes to learn,
+        and ``ign`` :math:`(Q, 5)` rows ``(image, x0, y0, x1, y1)`` of ignore regions.
+    """
+    rows, ign_rows = [], []
+    for i, t in enumerate(targets):
+        boxes = t["boxes"].to(device=device, dtype=torch.float32)
+        labels = t["labels"].to(device)
+        ignore = t.get("ignore", torch.zeros_like(labels, dtype=torch.bool)).to(device).bool()
+        idx = torch.full((len(boxes), 1), float(i), device=device)
+        cxcywh = torch.cat([(boxes[:, :2] + boxes[:, 2:]) / 2, boxes[:, 2:] - boxes[:, :2]], 1)
+        rows.append(torch.cat([idx, (labels[:, None] - 1).float(), cxcywh], dim=1)[~ignore])
+        ign_rows.append(torch.cat([idx, boxes], dim=1)[ignore])
+    empty6, empty5 = torch.zeros(0, 6, device=device), torch.zeros(0, 5, device=device)
+    return torch.cat(rows + [empty6]), torch.cat(ign_rows + [empty5])
+
+
+def assign(gt: torch.Tensor, anchors: torch.Tensor, strides: tuple[int, ...],
+           grid_shapes: list[tuple[int, int]], iou_thresh: float) -> list[LevelTargets]:
+    """Assign each ground-truth box to anchors across all scales (YOLOv4 ``iou_thresh``).
+
+    Args:
+        gt: :math:`(M, 6)` rows ``(image, class, cx, cy, w, h)`` in input pixels.
+        anchors: :math:`(L, A, 2)` anchor sizes in input pixels.
+        strides: pixels per cell of each scale.
+        grid_shapes: (H, W) cells of each scale.
+        iou_thresh: shape-IoU above which an anchor is also a positive (YOLOv4: 0.213).
+
+    Returns:
+        One :class:`LevelTargets` per scale; a box sits in the cell holding its centre.
+    """
+    num_levels, num_anchors = anchors.shape[:2]
+    ious = wh_iou(gt[:, 4:6], anchors.reshape(-1, 2))  # (M, L * A)
+    positive = ious > iou_thresh
+    if len(gt):
+        positive[torch.arange(len(gt), device=gt.device), ious.argmax(dim=1)] = True
+    out = []
+    for level in range(num_levels):
+        m, a = positive[:, level * num_anchors:(level + 1) * num_anchors].nonzero(as_tuple=True)
+        h, w = grid_shapes[level]
+        rows = gt[m]
+        gx = (rows[:, 2] / strides[level]).long().clamp(0, w - 1)
+        gy = (rows[:, 3] / strides[level]).long().clamp(0, h - 1)
+        out.append(LevelTargets(rows[:, 0].long(), a, gy, gx, rows[:, 2:6], rows[:, 1].long()))
+    return out

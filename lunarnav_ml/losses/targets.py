@@ -1,0 +1,45 @@
+"""Validation of training targets (torchvision-style list of dicts)."""
+
+from __future__ import annotations
+
+import torch
+
+from lunarnav_ml.errors import InputError
+
+
+def check_targets(targets: list[dict[str, torch.Tensor]], num_classes: int, batch_size: int
+                  ) -> None:
+    """Raise ``InputError`` naming the image and box of a malformed target.
+
+    Each target is ``{"boxes": (N, 4) xyxy px, "labels": (N,) category ids 1..K,
+    "ignore": (N,) bool (optional)}``.
+    """
+    if len(targets) != batch_size:
+        raise InputError(f"targets: {len(targets)} entries for a batch of {batch_size} images")
+    for i, t in enumerate(targets):
+        boxes, labels = t.get("boxes"), t.get("labels")
+        if boxes is None or labels is None:
+            raise InputError(f"targets[{i}]: needs 'boxes' and 'labels', got keys {sorted(t)}")
+        if boxes.ndim != 2 or boxes.shape[1] != 4 or labels.shape != boxes.shape[:1]:
+            raise InputError(f"targets[{i}]: boxes must be (N, 4) and labels (N,), got "
+                             f"{tuple(boxes.shape)} and {tuple(labels.shape)}")
+        if "ignore" in t and t["ignore"].shape != labels.shape:
+            raise InputError(f"targets[{i}]: ignore must be (N,), got {tuple(t['ignore'].shape)}")
+        _check_values(i, boxes, labels, num_classes)
+
+
+def _check_values(i: int, boxes: torch.Tensor, labels: torch.Tensor, num_classes: int) -> None:
+    bad = (~torch.isfinite(boxes).all(dim=1)).nonzero()
+    if len(bad):
+        j = int(bad[0])
+        raise InputError(f"targets[{i}]['boxes'][{j}] is not finite: {boxes[j].tolist()}")
+    bad = ((boxes[:, 2] <= boxes[:, 0]) | (boxes[:, 3] <= boxes[:, 1])).nonzero()
+    if len(bad):
+        j = int(bad[0])
+        raise InputError(f"targets[{i}]['boxes'][{j}] has non-positive width or height "
+                         f"(xyxy {boxes[j].tolist()})")
+    bad = ((labels < 1) | (labels > num_classes)).nonzero()
+    if len(bad):
+        j = int(bad[0])
+        raise InputError(f"targets[{i}]['labels'][{j}] = {int(labels[j])} is not a category id "
+                         f"in 1..{num_classes}")

@@ -1,0 +1,149 @@
+"""The YOLOv4 loss: CIoU box loss, objectness BCE with ignore masking, class BCE with label
+smoothing."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torchvision.ops import box_convert, box_iou
+
+from lunarnav_ml.losses.assigner import LevelTargets, assign, flatten_targets
+from lunarnav_ml.losses.iou import ciou
+from lunarnav_ml.losses.targets import check_targets
+from lunarnav_ml.models.decode import MAX_LOG_WH, decode_xywh, split_raw
+
+# Objectness weight per scale, finest first (small objects are many cells; YOLOv5's balance).
+LEVEL_BALANCE = {1: (1.0,), 2: (4.0, 1.0), 3: (4.0, 1.0, 0.4)}
+
+
+class YOLOLoss(nn.Module):
+    """Loss of a YOLO head's raw maps against box targets.
+
+    Args:
+        num_classes: K.
+        anchor_iou_thresh: anchors with shape IoU above this are extra positives (YOLOv4 0.213).
+        ignore_thresh: predictions overlapping any ground truth above this IoU get no
+            objectness penalty (YOLOv4 0.7).
+        label_smoothing: class targets become ``1 - eps / 2`` and ``eps / 2``.
+        box_weight, obj_weight, cls_weight: weights of the three terms; ``obj_weight`` is
+            scaled by ``(input size / 640)^2`` and all by ``3 / levels`` (YOLOv5 convention).
+        obj_iou_ratio: objectness target of a positive is ``1 - r + r * IoU`` (0: always 1).
+    """
+
+    def __init__(self, num_classes: int, anchor_iou_thresh: float = 0.213,
+                 ignore_thresh: float = 0.7, label_smoothing: float = 0.0,
+                 box_weight: float = 0.05, obj_weight: float = 1.0, cls_weight: float = 0.02,
+                 obj_iou_ratio: float = 1.0) -> None:
+        super().__init__()
+        self.num_classes = num_classes
+        self.anchor_iou_thresh = anchor_iou_thresh
+        self.ignore_thresh = ignore_thresh
+        self.label_smoothing = label_smoothing
+        self.weights = (box_weight, obj_weight, cls_weight)
+        self.obj_iou_ratio = obj_iou_ratio
+
+    def forward(self, raw: Sequence[torch.Tensor], targets: list[dict[str, torch.Tensor]],
+                anchors: torch.Tensor, strides: Sequence[int], scale_xy: Sequence[float]
+                ) -> dict[str, torch.Tensor]:
+        """Compute the loss terms.
+
+        Args:
+            raw: per scale :math:`(B, A (5 + K), H_i, W_i)` head maps.
+            targets: per image ``{"boxes": (N, 4) xyxy input px, "labels": (N,) ids 1..K,
+                "ignore": (N,) bool}``.
+            anchors: :math:`(L, A, 2)` px; strides, scale_xy: per scale.
+
+        Returns:
+            ``{"box", "obj", "cls", "loss"}`` scalar tensors (``loss`` is their sum).
+        """
+        check_targets(targets, self.num_classes, raw[0].shape[0])
+        raw = [x.float() for x in raw]  # under AMP the head maps are float16
+        gt, ign = flatten_targets(targets, raw[0].device)
+        grids = [(x.shape[2], x.shape[3]) for x in raw]
+        assigned = assign(gt, anchors, tuple(strides), grids, self.anchor_iou_thresh)
+        balance = LEVEL_BALANCE.get(len(raw), (1.0,) * len(raw))
+        zero = raw[0].sum() * 0.0
+        box, obj, cls = zero, zero, zero
+        n_box = 0
+        for level, x in enumerate(raw):
+            p = split_raw(x, anchors.shape[1])
+            pos = assigned[level]
+            b_l, o_l, c_l = self._level(p, pos, gt, ign, anchors[level], strides[level],
+                                        scale_xy[level])
+            box, cls = box + b_l * len(pos.batch), cls + c_l * len(pos.batch)
+            n_box += len(pos.batch)
+            obj = obj + o_l * balance[level]
+        box, cls = box / max(n_box, 1), cls / max(n_box, 1)
+        return self._weighted(box, obj, cls, raw, strides)
+
+    def _weighted(self, box, obj, cls, raw, strides) -> dict[str, torch.Tensor]:
+        levels = len(raw)
+        size = raw[0].shape[2] * strides[0]
+        wb, wo, wc = self.weights
+        terms = {"box": box * wb * 3 / levels, "obj": obj * wo * (size / 640) ** 2 * 3 / levels,
+                 "cls": cls * wc * 3 / levels}
+        terms["loss"] = terms["box"] + terms["obj"] + terms["cls"]
+        return terms
+
+    def _level(self, p: torch.Tensor, pos: LevelTargets, gt: torch.Tensor, ign: torch.Tensor,
+               anchors: torch.Tensor, stride: int, scale_xy: float
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Mean box (1 - CIoU) and class BCE over positives, and mean objectness BCE.
+
+        Shape:
+            - p: :math:`(B, A, H, W, 5 + K)` raw fields of one scale.
+        """
+        weight = self._negative_weight(p, gt, ign, anchors, stride, scale_xy)
+        tobj = torch.zeros_like(p[..., 4])
+        box = cls = p.sum() * 0.0
+        if len(pos.batch):
+            t = p[pos.batch, pos.anchor, pos.gy, pos.gx]  # (P, 5 + K)
+            cells = torch.stack([pos.gx, pos.gy], dim=1).to(t)
+            xy = (t[:, :2].sigmoid() * scale_xy - 0.5 * (scale_xy - 1) + cells) * stride
+            wh = torch.exp(t[:, 2:4].clamp(max=MAX_LOG_WH)) * anchors[pos.anchor]
+            c, _ = ciou(torch.cat([xy, wh], dim=1), pos.boxes)
+            box = (1.0 - c).mean()
+            r = self.obj_iou_ratio
+            tobj[pos.batch, pos.anchor, pos.gy, pos.gx] = (1 - r) + r * c.detach().clamp(0)
+            weight[pos.batch, pos.anchor, pos.gy, pos.gx] = 1.0
+            cls = F.binary_cross_entropy_with_logits(t[:, 5:], self._class_targets(pos.classes, t))
+        obj = (F.binary_cross_entropy_with_logits(p[..., 4], tobj, reduction="none")
+               * weight).mean()
+        return box, obj, cls
+
+    def _class_targets(self, classes: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        eps = self.label_smoothing
+        target = torch.full_like(t[:, 5:], 0.5 * eps)
+        target[torch.arange(len(classes)), classes] = 1.0 - 0.5 * eps
+        return target
+
+    @torch.no_grad()
+    def _negative_weight(self, p: torch.Tensor, gt: torch.Tensor, ign: torch.Tensor,
+                         anchors: torch.Tensor, stride: int, scale_xy: float) -> torch.Tensor:
+        """1 where a prediction is a plain negative, 0 where it overlaps a ground truth above
+        ``ignore_thresh`` or its centre lies in an ignore region.
+
+        Shape:
+            - Output: :math:`(B, A, H, W)`
+        """
+        boxes = decode_xywh(p[..., :4].float(), anchors, stride, scale_xy)  # (B, A, H, W, 4)
+        weight = torch.ones(boxes.shape[:-1], device=p.device)
+        for b in range(boxes.shape[0]):
+            flat = boxes[b].reshape(-1, 4)
+            mask = torch.zeros(len(flat), dtype=torch.bool, device=p.device)
+            gt_b = gt[gt[:, 0] == b, 2:6]
+            if len(gt_b):
+                iou = box_iou(box_convert(flat, "cxcywh", "xyxy"),
+                              box_convert(gt_b, "cxcywh", "xyxy"))
+                mask |= iou.max(dim=1).values > self.ignore_thresh
+            ign_b = ign[ign[:, 0] == b, 1:5]
+            if len(ign_b):
+                cx, cy = flat[:, 0:1], flat[:, 1:2]
+                inside = ((cx >= ign_b[:, 0]) & (cx <= ign_b[:, 2]) & (cy >= ign_b[:, 1])
+                          & (cy <= ign_b[:, 3]))
+                mask |= inside.any(dim=1)
+            weight[b].view(-1)[mask] = 0.0
+        return weight

@@ -1,0 +1,134 @@
+"""Onboard crater localization from a rectified stereo pair: detect -> rim ellipse -> 3D.
+
+Per frame: the detector finds crater boxes on the left image; SGBM computes the disparity
+once; each crater box gets a rim ellipse (contour / convex hull fitter) and the range lifter
+turns ellipse + disparity into a center and diameter in the rover frame (x forward, y left,
+z up, m). Every stage is numpy / OpenCV / scipy (``lunarnav_ml.geometry``), never torch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.geometry.ellipse import Ellipse, EllipseFitter
+from lunarnav_ml.geometry.frames import StereoRig
+from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater
+from lunarnav_ml.geometry.stereo import SGBMStereo
+from lunarnav_ml.runtime.preprocess import check_image
+
+
+class BoxDetector(Protocol):
+    """Anything with the ``predict`` contract (``OnnxDetector``, the torch ``Detector``)."""
+
+    class_names: Sequence[str]
+
+    def predict(self, images: list[np.ndarray], conf_thres: float = ..., iou_thres: float = ...
+                ) -> list[dict[str, np.ndarray]]: ...
+
+
+@dataclass(frozen=True)
+class Crater3D:
+    """One detected crater and what the geometry stages made of it.
+
+    Attributes:
+        box: (4,) xyxy px in the left image.
+        score: detector score.
+        ellipse: fitted rim ellipse (px), or None.
+        ellipse_quality: 0..1 edge support of the ellipse (0 without one).
+        lift: the 3D lift (rover frame), or None when no ellipse was fitted.
+        reason: "ok", "ellipse:<why>" or "lift:<why>".
+    """
+
+    box: np.ndarray
+    score: float
+    ellipse: Ellipse | None = None
+    ellipse_quality: float = 0.0
+    lift: LiftResult | None = field(default=None, repr=False)
+    reason: str = "ok"
+
+    @property
+    def ok(self) -> bool:
+        """True when the crater has a 3D center and diameter."""
+        return self.reason == "ok"
+
+    @property
+    def center_m(self) -> np.ndarray:
+        """(3,) rim-circle center in the rover frame, m (NaN when not ok)."""
+        return self.lift.center_m if self.lift is not None else np.full(3, np.nan)
+
+    @property
+    def diameter_m(self) -> float:
+        """Rim diameter, m (NaN when not ok)."""
+        return self.lift.diameter_m if self.lift is not None else float("nan")
+
+
+class StereoCraterLocalizer:
+    """Craters in 3D from a rectified stereo pair.
+
+    Args:
+        detector: box detector (normally :class:`~lunarnav_ml.runtime.OnnxDetector`).
+        rig: the rectified rig and its pose on the rover.
+        conf_thres: operating score threshold of crater boxes.
+        iou_thres: NMS IoU threshold.
+        stereo: disparity stage (SGBM settings).
+        fitter: rim ellipse stage.
+        lifter: range lifter thresholds (default :class:`LifterConfig`).
+    """
+
+    def __init__(self, detector: BoxDetector, rig: StereoRig, *, conf_thres: float = 0.25,
+                 iou_thres: float = 0.6, stereo: SGBMStereo | None = None,
+                 fitter: EllipseFitter | None = None, lifter: LifterConfig | None = None
+                 ) -> None:
+        names = list(detector.class_names)
+        if "crater" not in names:
+            raise ConfigError(f"detector classes {names} have no 'crater'")
+        self.detector, self.rig = detector, rig
+        self.crater_label = names.index("crater") + 1
+        self.conf_thres, self.iou_thres = conf_thres, iou_thres
+        self.stereo = stereo or SGBMStereo()
+        self.fitter = fitter or EllipseFitter()
+        self.lifter = lifter or LifterConfig()
+
+    def detect_boxes(self, left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Crater boxes (K, 4) xyxy px and scores (K,) on the left image."""
+        det = self.detector.predict([left], conf_thres=self.conf_thres,
+                                    iou_thres=self.iou_thres)[0]
+        mine = det["labels"] == self.crater_label
+        return det["boxes"][mine], det["scores"][mine]
+
+    def localize_box(self, left: np.ndarray, disparity: np.ndarray, box: np.ndarray,
+                     score: float) -> Crater3D:
+        """Ellipse and 3D lift of one crater box (xyxy px)."""
+        xywh = np.array([box[0], box[1], box[2] - box[0], box[3] - box[1]], dtype=np.float64)
+        fit = self.fitter(left, xywh)
+        if not fit.ok:
+            return Crater3D(box, score, reason=f"ellipse:{fit.reason}")
+        lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter)
+        return Crater3D(box, score, fit.ellipse, fit.quality, lift,
+                        "ok" if lift.ok else f"lift:{lift.reason}")
+
+    def __call__(self, left: np.ndarray, right: np.ndarray) -> list[Crater3D]:
+        """Detect and localize the craters of one rectified stereo pair.
+
+        Args:
+            left, right: (H, W, 3) uint8 RGB rectified images of the same shape.
+
+        Returns:
+            One :class:`Crater3D` per crater box above ``conf_thres``, by decreasing score;
+            check ``ok`` / ``reason`` before using ``center_m``.
+        """
+        check_image(left, 0)
+        check_image(right, 1)
+        if left.shape != right.shape:
+            raise InputError(f"right: expected the left image's shape {left.shape}, "
+                             f"got {right.shape}")
+        boxes, scores = self.detect_boxes(left)
+        if len(boxes) == 0:
+            return []
+        disparity = self.stereo(left, right).disparity
+        return [self.localize_box(left, disparity, b, float(s)) for b, s in zip(boxes, scores)]

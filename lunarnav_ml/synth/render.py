@@ -1,0 +1,207 @@
+"""The embedded CPU renderer: ray-cast heightfield, Hapke soil, shiny hardware, sun shadows.
+
+One call renders a view: per-pixel rays are marched through the periodic DEM (numba), hit
+points get normals, a sunlit flag from the precomputed shadow-height map and their object id;
+soil is shaded with Hapke IMSA, artifact materials with Lambert + Blinn-Phong (foil gets
+crinkled normals). The sky is black. A faint ambient term stands in for terrain
+interreflection inside shadows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numba as nb
+import numpy as np
+
+from lunarnav_ml.synth import raycast
+from lunarnav_ml.synth import terrain as T
+from lunarnav_ml.synth.camera import PinholeCam
+from lunarnav_ml.synth.hapke import HapkeParams, hapke_one, hapke_reflectance
+
+# material code -> (diffuse albedo, specular strength, Blinn-Phong exponent, normal crinkle)
+MATERIALS = {
+    T.GOLD_FOIL: (0.30, 0.55, 25.0, 0.35),
+    T.SILVER_FOIL: (0.45, 0.70, 40.0, 0.30),
+    T.WHITE_PAINT: (0.80, 0.04, 10.0, 0.0),
+    T.DARK_PANEL: (0.06, 0.35, 150.0, 0.0),
+}
+AMBIENT = 0.012  # interreflection fill, fraction of a flat sunlit surface's reflectance
+
+
+@dataclass
+class PreparedTerrain:
+    """Terrain plus the lookup structures the ray caster needs for one sun direction."""
+
+    ter: T.Terrain
+    bmax: np.ndarray
+    hmax: float
+    gx: np.ndarray
+    gy: np.ndarray
+    shadow: np.ndarray
+    sun: np.ndarray
+
+
+def prepare(ter: T.Terrain, sun: np.ndarray) -> PreparedTerrain:
+    """Block maxima, slopes and the shadow-height map for unit sun vector ``sun`` (3,)."""
+    gx, gy = T.gradients(ter.h, ter.res)
+    horiz = math.hypot(sun[0], sun[1])
+    if horiz < 1e-6:
+        shadow = ter.h.copy()
+    else:
+        shadow = raycast.shadow_heights(ter.h, sun[0] / horiz, sun[1] / horiz,
+                                        sun[2] / horiz, ter.res)
+    return PreparedTerrain(ter, raycast.block_max(ter.h), float(ter.h.max()), gx, gy,
+                           shadow, np.asarray(sun, np.float64))
+
+
+@dataclass
+class View:
+    """One rendered view (H, W): radiance (1/sr, unit irradiance), z-depth (m, inf = sky),
+    encoded object ids (int64, 0 soil/sky) and the hit points (H, W, 3) in the scene frame."""
+
+    radiance: np.ndarray
+    depth: np.ndarray
+    ids: np.ndarray
+    points: np.ndarray
+
+
+def cast(prep: PreparedTerrain, origin: np.ndarray, dirs: np.ndarray, pix: float,
+         t_max: float, step_frac: float = raycast.STEP_FRACTION) -> np.ndarray:
+    """Hit distance along each unit ray (N, 3) from ``origin``, m (inf = none).
+
+    ``pix`` is the angular ray spacing (rad), ``step_frac`` the far-field march step as a
+    fraction of the range.
+    """
+    ter = prep.ter
+    out = np.empty(dirs.shape[0], np.float64)
+    raycast.cast_rays(np.asarray(origin, np.float64), np.ascontiguousarray(dirs), ter.h,
+                      prep.bmax, ter.x0, ter.y0, ter.res, 0.0, t_max, pix, prep.hmax, step_frac, out)
+    return out
+
+
+def _surface(prep: PreparedTerrain, pts: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Normals (N, 3), lit (N,), encoded ids (N,) at hit points (N, 3) (NaN rows = miss)."""
+    ter = prep.ter
+    n = len(pts)
+    normals = np.zeros((n, 3))
+    lit = np.zeros(n)
+    ids = np.zeros(n, np.int64)
+    raycast.surface_at(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                       ter.h, prep.shadow, prep.gx, prep.gy, ter.obj, ter.x0, ter.y0, ter.res,
+                       normals, lit, ids)
+    return normals, lit, ids
+
+
+def shade(prep: PreparedTerrain, pts: np.ndarray, view_dirs: np.ndarray, w_soil: float,
+          hp: HapkeParams) -> tuple[np.ndarray, np.ndarray]:
+    """Reflectance (1/sr) and encoded object ids at hit points (N, 3) seen along (N, 3) rays."""
+    ter, sun = prep.ter, prep.sun
+    flat = hapke_reflectance(np.array([max(sun[2], 0.05)]), np.array([1.0]),
+                             np.array([max(sun[2], 0.05)]), w_soil, hp)[0]
+    r = np.zeros(len(pts))
+    ids = np.zeros(len(pts), np.int64)
+    hpar = np.array([hp.b, hp.c, hp.b_s0, hp.h_s, hp.b_c0, hp.h_c,
+                     math.tan(math.radians(hp.theta_bar_deg))])
+    _shade_kernel(np.ascontiguousarray(pts), np.ascontiguousarray(view_dirs),
+                  np.asarray(sun, np.float64), ter.h, prep.shadow, prep.gx, prep.gy, ter.obj,
+                  ter.material, ter.albedo, ter.x0, ter.y0, ter.res, w_soil, hpar, _MAT_TABLE,
+                  AMBIENT * flat, r, ids)
+    return r, ids
+
+
+_MAT_TABLE = np.array([MATERIALS.get(k, (0.0, 0.0, 1.0, 0.0)) for k in range(5)], np.float64)
+
+
+@nb.njit(cache=True, inline="always")
+def _hash01(a: float, b: float, salt: float) -> float:
+    """Deterministic pseudo-random value in [0, 1)."""
+    v = math.sin(a * 12.9898 + b * 78.233 + salt * 37.719) * 43758.5453
+    return v - math.floor(v)
+
+
+@nb.njit(cache=True, parallel=True)
+def _shade_kernel(pts, dirs, sun, h, shadow, gxa, gya, obj, material, albedo, x0, y0, res,
+                  w_soil, hp, mat_table, ambient, out_r, out_id):
+    """Per hit: normal, sunlit flag, id, material; Hapke soil or Lambert + Blinn-Phong (foil
+    with crinkled facets per node and height step); plus the interreflection fill."""
+    n = h.shape[0]
+    for k in nb.prange(pts.shape[0]):
+        gx = (pts[k, 0] - x0) / res
+        gy = (pts[k, 1] - y0) / res
+        sx = raycast._bilinear(gxa, gx, gy)
+        sy = raycast._bilinear(gya, gx, gy)
+        inv = 1.0 / math.sqrt(sx * sx + sy * sy + 1.0)
+        nx, ny, nz = -sx * inv, -sy * inv, inv
+        shade_h = raycast._bilinear(shadow, gx, gy) - 0.004
+        lit = 1.0 if raycast._bilinear(h, gx, gy) >= shade_h else 0.0
+        out_id[k] = raycast.encode_id(obj, gx, gy)
+        i = int(math.floor(gx + 0.5)) % n  # noqa: RUF046 (numba)
+        j = int(math.floor(gy + 0.5)) % n  # noqa: RUF046 (numba)
+        mat = material[i, j]
+        alb = raycast._bilinear(albedo, gx, gy)
+        vx, vy, vz = -dirs[k, 0], -dirs[k, 1], -dirs[k, 2]
+        kd, ks, shin, crinkle = mat_table[mat, 0], mat_table[mat, 1], mat_table[mat, 2], \
+            mat_table[mat, 3]
+        if crinkle > 0:
+            kz = math.floor(pts[k, 2] / res)
+            a, b = i + 0.37 * kz, j - 0.61 * kz
+            nx += 2 * crinkle * (_hash01(a, b, 1.0) - 0.5)
+            ny += 2 * crinkle * (_hash01(a, b, 2.0) - 0.5)
+            nz += 2 * crinkle * (_hash01(a, b, 3.0) - 0.5)
+            norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+            nx, ny, nz = nx / norm, ny / norm, nz / norm
+        mu0 = nx * sun[0] + ny * sun[1] + nz * sun[2]
+        mu = nx * vx + ny * vy + nz * vz
+        if mat == 0:
+            r = hapke_one(mu0, mu, vx * sun[0] + vy * sun[1] + vz * sun[2], w_soil * alb,
+                          hp[0], hp[1], hp[2], hp[3], hp[4], hp[5], hp[6])
+            fill = ambient * alb
+        else:
+            hx, hy, hz = vx + sun[0], vy + sun[1], vz + sun[2]
+            hn = max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-9)
+            nh = max((nx * hx + ny * hy + nz * hz) / hn, 0.0)
+            spec = ks * (shin + 2) / (2 * math.pi) * nh**shin
+            r = (kd * alb / math.pi + spec) * max(mu0, 0.0)
+            fill = ambient
+        out_r[k] = r * lit + fill * (0.5 + 0.5 * nz)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot of (N, 3) with (3,), without BLAS threads."""
+    return a[:, 0] * b[0] + a[:, 1] * b[1] + a[:, 2] * b[2]
+
+
+def render_view(prep: PreparedTerrain, cam: PinholeCam, *, w_soil: float, hp: HapkeParams,
+                max_range_m: float, supersample: int = 1, need_ids: bool = True) -> View:
+    """Render one camera: radiance, z-depth, object ids and hit points, each (H, W).
+
+    With ``supersample`` k > 1 the radiance is rendered at k x size and Lanczos-downsampled;
+    depth, ids and points come from a second cast through the output pixel centers.
+    """
+    h, w = cam.height, cam.width
+    dirs = cam.ray_dirs(supersample)
+    t = cast(prep, cam.position, dirs, cam.pixel_angle() / supersample, max_range_m)
+    hit = np.isfinite(t)
+    pts = np.full(dirs.shape, np.nan)
+    pts[hit] = cam.position + dirs[hit] * t[hit, None]
+    rad = np.zeros(len(dirs))
+    ids = np.zeros(len(dirs), np.int64)
+    rad[hit], ids[hit] = shade(prep, pts[hit], dirs[hit], w_soil, hp)
+    k = supersample
+    radiance = rad.reshape(h * k, w * k).astype(np.float32)
+    if k > 1:
+        radiance = np.maximum(cv2.resize(radiance, (w, h), interpolation=cv2.INTER_LANCZOS4), 0)
+        dirs = cam.ray_dirs(1)
+        t = cast(prep, cam.position, dirs, cam.pixel_angle(), max_range_m)
+        hit = np.isfinite(t)
+        pts = np.full(dirs.shape, np.nan)
+        pts[hit] = cam.position + dirs[hit] * t[hit, None]
+        ids = np.zeros(len(dirs), np.int64)
+        if need_ids:
+            ids[hit] = _surface(prep, pts[hit])[2]
+    zdir = _dot(dirs, cam.rot[:, 2])
+    depth = np.where(hit, t * zdir, np.inf).astype(np.float32).reshape(h, w)
+    return View(radiance, depth, ids.reshape(h, w), pts.reshape(h, w, 3))

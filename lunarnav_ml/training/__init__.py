@@ -1,0 +1,1 @@
+"""LightningModule, training API, checkpoints, and the ``lunarnav train`` / ``detect`` commands."""

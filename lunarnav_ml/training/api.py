@@ -1,0 +1,187 @@
+"""Training and inference entry points other stages code against (docs/ARCHITECTURE.md):
+``fit_detector``, ``load_detector`` and ``Detector``."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from lunarnav_ml.data.letterbox import LetterboxInfo, letterbox
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.models import YOLO, build_model, decode, postprocess
+from lunarnav_ml.training.checkpoint import read_checkpoint, save_slim
+
+
+class Detector:
+    """A trained detector for inference on RGB images.
+
+    Attributes:
+        model: the :class:`YOLO` module (eval mode, CPU unless moved).
+        anchors: :math:`(L, A, 2)` anchors, input px.
+        strides: pixels per cell of each scale.
+        scale_xy: grid-sensitivity factor per scale.
+        img_size: square input side, px.
+        class_names: name of category id ``k`` at index ``k - 1``.
+    """
+
+    def __init__(self, model: YOLO, img_size: int, class_names: list[str], preset: str = "") -> None:
+        self.model = model.eval()
+        self.img_size = int(img_size)
+        self.class_names = list(class_names)
+        self.preset = preset
+
+    @property
+    def anchors(self) -> torch.Tensor:
+        return self.model.anchors
+
+    @property
+    def strides(self) -> tuple[int, ...]:
+        return self.model.strides
+
+    @property
+    def scale_xy(self) -> tuple[float, ...]:
+        return self.model.scale_xy
+
+    @property
+    def config(self) -> dict[str, Any]:
+        """What :func:`load_detector` needs to rebuild the model."""
+        return {"preset": self.preset, "num_classes": len(self.class_names),
+                "class_names": self.class_names, "anchors": self.anchors.tolist(),
+                "img_size": self.img_size}
+
+    def preprocess(self, images: list[np.ndarray]) -> tuple[torch.Tensor, list[LetterboxInfo]]:
+        """Letterbox RGB uint8 images into one float batch.
+
+        Shape:
+            - Output: :math:`(B, 3, S, S)` float in [0, 1], ``S = img_size``.
+        """
+        squares, infos = [], []
+        for i, image in enumerate(images):
+            if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3:
+                raise InputError(f"images[{i}]: expected an HxWx3 uint8 RGB array, got "
+                                 f"{getattr(image, 'shape', type(image))}")
+            square, info = letterbox(np.ascontiguousarray(image, dtype=np.uint8), self.img_size)
+            squares.append(square)
+            infos.append(info)
+        batch = torch.from_numpy(np.stack(squares)).permute(0, 3, 1, 2).float() / 255.0
+        return batch, infos
+
+    @torch.no_grad()
+    def predict(self, images: list[np.ndarray], conf_thres: float = 0.001,
+                iou_thres: float = 0.6, max_det: int = 300) -> list[dict[str, np.ndarray]]:
+        """Detect objects in RGB images.
+
+        Args:
+            images: HxWx3 uint8 RGB arrays (any sizes).
+            conf_thres: minimum score ``objectness * class probability``.
+            iou_thres: NMS IoU threshold.
+
+        Returns:
+            per image ``{"boxes": (N, 4) float32 xyxy original px, "scores": (N,) float32,
+            "labels": (N,) int64 category ids 1..K}``.
+        """
+        if not images:
+            return []
+        device = next(self.model.parameters()).device
+        batch, infos = self.preprocess(images)
+        raw = self.model(batch.to(device))
+        preds = postprocess(decode(raw, self.anchors, self.strides, self.scale_xy), conf_thres,
+                            iou_thres, max_det)
+        out = []
+        for pred, info, image in zip(preds, infos, images):
+            boxes = info.to_original(pred["boxes"].cpu().numpy(), image.shape[1], image.shape[0])
+            out.append({"boxes": boxes, "scores": pred["scores"].cpu().numpy().astype(np.float32),
+                        "labels": pred["labels"].cpu().numpy().astype(np.int64)})
+        return out
+
+    @staticmethod
+    def to_coco_results(preds: list[dict[str, np.ndarray]], image_ids: list[int]
+                        ) -> list[dict[str, Any]]:
+        """Predictions of several images as COCO results (bbox as x, y, w, h)."""
+        if len(preds) != len(image_ids):
+            raise InputError(f"{len(preds)} predictions for {len(image_ids)} image ids")
+        return [{"image_id": int(image_id), "category_id": int(label),
+                 "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])],
+                 "score": float(score)}
+                for pred, image_id in zip(preds, image_ids)
+                for b, score, label in zip(pred["boxes"], pred["scores"], pred["labels"])]
+
+    def save(self, path: str | Path) -> Path:
+        """Write a slim ``.pt`` file (weights + config) that :func:`load_detector` reads."""
+        return save_slim(path, self.config, self.model)
+
+
+def load_detector(path: str | Path) -> Detector:
+    """Load a detector from a Lightning ``.ckpt`` (EMA weights) or a slim ``.pt`` file."""
+    config, state = read_checkpoint(path)
+    missing = [k for k in ("preset", "num_classes", "img_size") if config.get(k) is None]
+    if missing:
+        raise InputError(f"{path}: checkpoint lacks model settings {missing}")
+    model = build_model(config["preset"], config["num_classes"], config.get("anchors"))
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as err:
+        raise InputError(f"{path}: weights do not match preset {config['preset']!r}: {err}"
+                         ) from err
+    names = config.get("class_names") or [f"class{i + 1}" for i in range(config["num_classes"])]
+    return Detector(model, config["img_size"], names, config["preset"])
+
+
+def fit_detector(train_ann: str | Path | list, val_ann: str | Path, out_dir: str | Path, *,
+                 preset: str = "nano", img_size: int = 320, max_minutes: float = 7.0,
+                 max_epochs: int = 100, batch_size: int = 16, seed: int = 0,
+                 progress: bool = True, mosaic_prob: float = 0.0, lr: float = 2e-3,
+                 num_workers: int = 0, init_from: str | Path | None = None,
+                 freeze_backbone: bool = False, resume: bool = False,
+                 accelerator: str = "cpu", devices: int | str = 1,
+                 checkpoint_every_n_steps: int = 50, **module_kwargs: Any) -> Path:
+    """Train a detector on COCO data within a wall-clock budget; return the best checkpoint.
+
+    Anchors come from k-means on the training boxes (unless ``init_from`` supplies them);
+    validation computes COCO mAP each epoch and the checkpoint with the best AP50 is kept.
+    ``<out_dir>/checkpoints/last.ckpt`` is refreshed every ``checkpoint_every_n_steps`` so that
+    ``resume=True`` continues an interrupted run.
+
+    Args:
+        train_ann: training ``annotations.json`` (or a list of them, mixed by size).
+        val_ann: validation ``annotations.json``.
+        out_dir: run folder (checkpoints, CSV and TensorBoard logs).
+        preset: model size; img_size: square input side (px, multiple of 32).
+        max_minutes: wall-clock limit of ``trainer.fit``; max_epochs: epoch limit.
+        mosaic_prob: 4-image mosaic probability; lr: peak learning rate.
+        init_from: checkpoint to fine-tune from; freeze_backbone: train neck and head only.
+        module_kwargs: further :class:`DetectorModule` arguments.
+
+    Returns:
+        Path of the best checkpoint (Lightning ``.ckpt``).
+    """
+    import lightning as L
+
+    from lunarnav_ml.data.datamodule import DetectionDataModule
+    from lunarnav_ml.training.module import DetectorModule
+    from lunarnav_ml.training.trainer import build_callbacks, build_loggers
+
+    out_dir = Path(out_dir)
+    L.seed_everything(seed, workers=True)
+    dm = DetectionDataModule(train_ann, str(val_ann), img_size=img_size, batch_size=batch_size,
+                             num_workers=num_workers, mosaic_prob=mosaic_prob)
+    module = DetectorModule(preset=preset, img_size=img_size, lr=lr,
+                            init_from=str(init_from) if init_from else None,
+                            freeze_backbone=freeze_backbone, **module_kwargs)
+    callbacks = build_callbacks(out_dir / "checkpoints", checkpoint_every_n_steps)
+    trainer = L.Trainer(
+        default_root_dir=out_dir, accelerator=accelerator, devices=devices,
+        max_epochs=max_epochs, max_time=timedelta(minutes=max_minutes), callbacks=callbacks,
+        logger=build_loggers(out_dir), enable_progress_bar=progress, num_sanity_val_steps=0,
+        log_every_n_steps=1, enable_model_summary=progress,
+    )
+    last = out_dir / "checkpoints" / "last.ckpt"
+    trainer.fit(module, dm, ckpt_path=str(last) if resume and last.is_file() else None)
+    best = trainer.checkpoint_callback.best_model_path
+    if not best:
+        raise InputError(f"{out_dir}: training ended before any validation; raise max_minutes")
+    return Path(best)

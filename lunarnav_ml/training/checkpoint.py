@@ -1,0 +1,77 @@
+"""Reading and writing detector weights: Lightning ``.ckpt`` files and slim ``.pt`` files.
+
+A slim file is ``{"format": SLIM_FORMAT, "config": {...}, "state_dict": {...}}`` with the EMA
+weights and what is needed to rebuild the model (preset, classes, anchors, input size).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from lunarnav_ml.errors import InputError
+
+SLIM_FORMAT = "lunarnav-detector-v1"
+CONFIG_KEYS = ("preset", "num_classes", "class_names", "anchors", "img_size")
+
+
+def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """Model config and (EMA) weights from a ``.ckpt`` or slim ``.pt`` file.
+
+    Returns:
+        ``(config, state_dict)``; config holds ``CONFIG_KEYS``; state_dict keys are those of
+        :class:`lunarnav_ml.models.YOLO`.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: checkpoint not found")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:
+        raise InputError(f"{path}: not a readable checkpoint ({err})") from err
+    if isinstance(ckpt, dict) and ckpt.get("format") == SLIM_FORMAT:
+        return dict(ckpt["config"]), ckpt["state_dict"]
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
+        raise InputError(f"{path}: neither a Lightning checkpoint nor a slim detector file")
+    hp = ckpt["hyper_parameters"]
+    config = {k: hp.get(k) for k in CONFIG_KEYS}
+    return config, _model_weights(path, ckpt["state_dict"])
+
+
+def _model_weights(path: Path, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    for prefix in ("ema.module.", "model."):
+        weights = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+        if weights:
+            return weights
+    raise InputError(f"{path}: the checkpoint holds no detector weights")
+
+
+def load_weights(model: nn.Module, path: str | Path) -> None:
+    """Initialise ``model`` from a checkpoint (fine-tuning); shapes must match.
+
+    Raises:
+        InputError: the checkpoint's tensors do not fit the model (other preset or classes).
+    """
+    _, state = read_checkpoint(path)
+    own = model.state_dict()
+    bad = [k for k, v in state.items() if k not in own or own[k].shape != v.shape]
+    missing = [k for k in own if k not in state]
+    if bad or missing:
+        raise InputError(f"{path}: weights do not fit this model ({len(bad)} mismatched, "
+                         f"{len(missing)} missing, e.g. {(bad or missing)[0]}); same preset "
+                         "and num_classes are needed")
+    model.load_state_dict(state)
+
+
+def save_slim(path: str | Path, config: dict[str, Any], model: nn.Module) -> Path:
+    """Write a slim weights file (``config`` plus ``model``'s state dict)."""
+    from lunarnav_ml.utils.atomic import atomic_path
+
+    path = Path(path)
+    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    with atomic_path(path) as tmp:
+        torch.save({"format": SLIM_FORMAT, "config": config, "state_dict": state}, tmp)
+    return path

@@ -1,0 +1,67 @@
+"""``lunarnav train`` (the LightningCLI of train.py) and ``lunarnav detect``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from lunarnav_ml.errors import ConfigError
+
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "nano.pt"
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``train`` and ``detect`` subcommands."""
+    p = subparsers.add_parser(
+        "train", add_help=False, help="train the detector (LightningCLI; try 'train fit --help')",
+        description="Forwards its arguments to the Lightning CLI of train.py, e.g. "
+                    "'lunarnav train fit --config configs/nano_cpu.yaml'.")
+    p.add_argument("cli_args", nargs=argparse.REMAINDER, help="LightningCLI arguments")
+    p.set_defaults(func=run_train)
+
+    p = subparsers.add_parser(
+        "detect", help="detect craters, rocks and artifacts in an image or a folder",
+        description="Writes results.json (COCO results), images.json (image ids) and overlay "
+                    "images under --out.")
+    p.add_argument("source", type=Path, help="image file or folder of images")
+    p.add_argument("--weights", type=Path, default=None,
+                   help=f"checkpoint (.ckpt) or slim weights (.pt); default {DEFAULT_WEIGHTS}")
+    p.add_argument("--out", type=Path, default=Path("outputs/detect"), help="output folder")
+    p.add_argument("--conf", type=float, default=0.001, help="score threshold of results.json")
+    p.add_argument("--iou", type=float, default=0.6, help="NMS IoU threshold")
+    p.add_argument("--overlay-conf", type=float, default=0.25, help="score threshold drawn")
+    p.add_argument("--batch", type=int, default=8, help="images per forward pass")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_detect)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    """Run the LightningCLI with the forwarded arguments."""
+    from lunarnav_ml.training.lightning_cli import run_cli
+
+    run_cli(args.cli_args or ["--help"])
+    return 0
+
+
+def run_detect(args: argparse.Namespace) -> int:
+    """Detect on the source images and write results and overlays."""
+    from lunarnav_ml.training.api import load_detector
+    from lunarnav_ml.training.detect import detect_files, list_images
+
+    for name in ("conf", "iou", "overlay_conf"):
+        if not 0.0 <= getattr(args, name) <= 1.0:
+            raise ConfigError(f"--{name.replace('_', '-')} must lie in [0, 1], "
+                              f"got {getattr(args, name)}")
+    if args.batch < 1:
+        raise ConfigError(f"--batch must be >= 1, got {args.batch}")
+    weights = args.weights or DEFAULT_WEIGHTS
+    if args.weights is None and not weights.is_file():
+        raise ConfigError(f"no --weights given and no shipped weights at {weights}")
+    files = list_images(args.source)
+    detector = load_detector(weights)
+    out = detect_files(detector, files, args.out, conf_thres=args.conf, iou_thres=args.iou,
+                       overlay_thres=args.overlay_conf, batch=args.batch,
+                       progress=not args.quiet)
+    print(f"lunarnav detect: {len(out['results'])} detections on {len(files)} images -> "
+          f"{args.out / 'results.json'}")
+    return 0

@@ -1,0 +1,83 @@
+"""Detection on image files: COCO results JSON plus overlay images (``lunarnav detect``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.training.api import Detector
+from lunarnav_ml.utils import atomic
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+CLASS_COLORS_BGR = ((0, 200, 255), (255, 160, 0), (60, 60, 255))  # crater, rock, artifact
+
+
+def list_images(source: Path) -> list[Path]:
+    """An image file, or the image files of a folder (sorted, not recursive)."""
+    source = Path(source)
+    if source.is_file():
+        return [source]
+    if not source.is_dir():
+        raise InputError(f"{source}: no such image or folder")
+    files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise InputError(f"{source}: the folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
+    return files
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """Read an image as HxWx3 uint8 RGB (grayscale replicated)."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise InputError(f"{path}: corrupt or unreadable image")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def draw_overlay(image: np.ndarray, pred: dict[str, np.ndarray], class_names: list[str],
+                 min_score: float) -> np.ndarray:
+    """Boxes with class and score drawn on a copy of an RGB image; returns BGR for writing."""
+    out = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    for box, score, label in zip(pred["boxes"], pred["scores"], pred["labels"]):
+        if score < min_score:
+            continue
+        color = CLASS_COLORS_BGR[(int(label) - 1) % len(CLASS_COLORS_BGR)]
+        x0, y0, x1, y1 = (round(float(v)) for v in box)
+        cv2.rectangle(out, (x0, y0), (x1, y1), color, 1)
+        name = class_names[int(label) - 1] if 0 < int(label) <= len(class_names) else str(label)
+        cv2.putText(out, f"{name} {score:.2f}", (x0, max(8, y0 - 2)), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.35, color, 1, cv2.LINE_AA)
+    return out
+
+
+def detect_files(detector: Detector, files: list[Path], out_dir: Path, *, conf_thres: float,
+                 iou_thres: float, overlay_thres: float, batch: int = 8, progress: bool = True
+                 ) -> dict[str, Any]:
+    """Detect on image files; write ``results.json`` (COCO results), ``images.json`` (ids to
+    files) and ``overlays/<stem>.jpg`` under ``out_dir``.
+
+    Returns:
+        ``{"images": [...], "results": [...]}`` as written.
+    """
+    images_meta, results = [], []
+    bar = tqdm(total=len(files), desc="detect", unit="img", disable=not progress)
+    for start in range(0, len(files), batch):
+        chunk = files[start:start + batch]
+        rgb = [read_rgb(f) for f in chunk]
+        preds = detector.predict(rgb, conf_thres=conf_thres, iou_thres=iou_thres)
+        ids = list(range(start + 1, start + 1 + len(chunk)))
+        results += detector.to_coco_results(preds, ids)
+        for image_id, path, image, pred in zip(ids, chunk, rgb, preds):
+            images_meta.append({"id": image_id, "file_name": str(path),
+                                "width": image.shape[1], "height": image.shape[0]})
+            atomic.write_image(out_dir / "overlays" / f"{path.stem}.jpg",
+                               draw_overlay(image, pred, detector.class_names, overlay_thres))
+        bar.update(len(chunk))
+    bar.close()
+    atomic.write_json(out_dir / "results.json", results, indent=None)
+    atomic.write_json(out_dir / "images.json", images_meta)
+    return {"images": images_meta, "results": results}

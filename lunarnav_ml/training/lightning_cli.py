@@ -1,0 +1,33 @@
+"""The LightningCLI behind ``train.py`` and ``lunarnav train``: YAML configs map onto
+:class:`DetectorModule`, :class:`DetectionDataModule` and the Lightning ``Trainer``.
+
+Examples::
+
+    python train.py fit --config configs/nano_cpu.yaml
+    python train.py fit --config configs/nano_cpu.yaml --ckpt_path runs/nano_cpu/checkpoints/last.ckpt
+    python train.py fit --config configs/finetune_real.yaml --model.init_from best.ckpt
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from lightning.pytorch.cli import LightningCLI
+
+from lunarnav_ml.data.datamodule import DetectionDataModule
+from lunarnav_ml.training.module import DetectorModule
+
+
+class DetectorCLI(LightningCLI):
+    """LightningCLI that keeps the input size of model and data in step."""
+
+    def add_arguments_to_parser(self, parser) -> None:
+        parser.link_arguments("data.img_size", "model.img_size")
+        parser.link_arguments("data.num_classes", "model.num_classes")
+
+
+def run_cli(args: Sequence[str] | None = None, run: bool = True) -> DetectorCLI:
+    """Parse ``args`` (default: ``sys.argv``) and run the chosen Lightning subcommand."""
+    return DetectorCLI(DetectorModule, DetectionDataModule, args=list(args) if args is not None
+                       else None, run=run, seed_everything_default=0,
+                       save_config_kwargs={"overwrite": True})

@@ -1,0 +1,91 @@
+"""The lidar detector stage by stage on one analytic crater with a known answer, plus the
+inputs that must give no detection (empty, NaN, flat) and those that must raise."""
+
+import numpy as np
+import pytest
+
+from tests.baselines.conftest import CRATER_D, CRATER_XY, PROFILE
+from lunarnav_ml.baselines import lidar as L
+from lunarnav_ml.errors import InputError
+
+SENSOR = np.array([0.0, 0.0, 1.5])
+CENTER = np.array(CRATER_XY)
+DEPTH = PROFILE.depth_m + PROFILE.rim_height_m  # crest to floor, as in the dataset
+
+
+@pytest.fixture(scope="module")
+def scene(crater_scan):
+    return L.prepare_scene(crater_scan, SENSOR, L.LidarConfig())
+
+
+def test_stage1_ground_plane_and_back_wall(scene):
+    assert scene.sensor_h == pytest.approx(1.5, abs=0.02)
+    walls = L.find_back_walls(scene, L.LidarConfig())
+    # the back wall: beyond the center, inside the rim
+    back = [w for w in walls if np.hypot(*w.centroid[:2]) > np.hypot(*CENTER)]
+    assert len(back) == 1
+    assert np.hypot(*(back[0].centroid[:2] - CENTER)) < CRATER_D / 2
+    assert np.all(back[0].normals[:, 2] > 0)
+
+
+def test_stage2_front_rim_back_rim_diameter(scene):
+    cfg = L.LidarConfig()
+    ests = [e for w in L.find_back_walls(scene, cfg) if (e := L.estimate_crater(scene, w, cfg))]
+    assert len(ests) == 1
+    est = ests[0]
+    u = CENTER / np.hypot(*CENTER)
+    assert est.front_rim[:2] @ u == pytest.approx(np.hypot(*CENTER) - 5.0, abs=0.4)
+    assert est.back_rim[:2] @ u == pytest.approx(np.hypot(*CENTER) + 5.0, abs=0.4)
+    assert est.diameter_m == pytest.approx(CRATER_D, rel=0.06)
+    assert np.hypot(*(est.center[:2] - CENTER)) < 0.4
+
+
+def test_stage3_model_matching_refines_the_center(crater_scan):
+    prior = L.MapCrater((CENTER[0] + 1.0, CENTER[1] - 1.0), CRATER_D, DEPTH, PROFILE.rim_height_m)
+    decoy = L.MapCrater((CENTER[0], CENTER[1]), 3.0, 0.6)  # wrong diameter: never a candidate
+    dets = L.detect_craters_lidar(crater_scan, map_craters=[decoy, prior])
+    assert len(dets) == 1 and dets[0].map_index == 1
+    assert np.hypot(*(dets[0].center_m[:2] - CENTER)) < 0.2
+    assert dets[0].center_m[2] == pytest.approx(PROFILE.rim_height_m, abs=0.1)
+    assert dets[0].diameter_m == CRATER_D and -0.1 < dets[0].score <= 0.0
+
+
+def test_model_score_peaks_at_the_truth(scene):
+    cfg = L.LidarConfig()
+    model = L.ModelPoints.build(PROFILE, 0.2, CENTER, scene.sensor_h)
+    offsets = np.array([[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0]]) + CENTER
+    scores = L.score_placements(scene, model, offsets, 0.0, cfg)
+    assert np.argmax(scores) == 0 and scores[0] > scores[1:].max() + 0.01
+
+
+def test_map_crater_far_from_prior_is_not_tried(crater_scan):
+    far = L.MapCrater((CENTER[0] + 20.0, CENTER[1]), CRATER_D, DEPTH)
+    assert L.detect_craters_lidar(crater_scan, map_craters=[far]) == []
+
+
+def test_gravity_alignment_on_a_tilted_scan(crater_scan):
+    """The same scan seen from a rover pitched 6 deg: same crater in the tilted frame."""
+    a = np.radians(6.0)
+    rot = np.array([[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]])
+    tilted = (crater_scan - SENSOR) @ rot.T + SENSOR
+    dets = L.detect_craters_lidar(tilted, sensor_origin=SENSOR)
+    truth = (np.array([*CENTER, PROFILE.rim_height_m]) - SENSOR) @ rot.T + SENSOR
+    assert len(dets) == 1 and np.hypot(*(dets[0].center_m[:2] - truth[:2])) < 0.4
+
+
+def test_flat_empty_and_nan_give_no_detection(flat_scan, crater_scan):
+    prior = [L.MapCrater(tuple(CENTER), CRATER_D, DEPTH)]
+    assert L.detect_craters_lidar(flat_scan, map_craters=prior) == []
+    assert L.detect_craters_lidar(flat_scan) == []
+    assert L.detect_craters_lidar(np.zeros((0, 3)), map_craters=prior) == []
+    assert L.detect_craters_lidar(np.full((500, 3), np.nan)) == []
+    with_nans = crater_scan.copy()
+    with_nans[::7] = np.nan
+    assert len(L.detect_craters_lidar(with_nans, map_craters=prior)) == 1
+
+
+def test_bad_input_raises():
+    with pytest.raises(InputError, match="points"):
+        L.detect_craters_lidar(np.zeros((10, 2)))
+    with pytest.raises(InputError, match="sensor_origin"):
+        L.detect_craters_lidar(np.zeros((10, 3)), sensor_origin=(0.0, np.nan, 1.5))

@@ -1,0 +1,94 @@
+"""The stereo detector stage by stage on one analytic crater with a known answer, plus the
+inputs that must give no detection (all-invalid, flat) and those that must raise."""
+
+import numpy as np
+import pytest
+
+from tests.baselines.conftest import CAMERA, CRATER_D, CRATER_XY, disparity_of
+from lunarnav_ml.baselines import stereo as S
+from lunarnav_ml.baselines.analytic import AnalyticScene
+from lunarnav_ml.errors import InputError
+
+CENTER = np.array(CRATER_XY)
+
+
+@pytest.fixture(scope="module")
+def flat_disparity():
+    return disparity_of(AnalyticScene(), seed=6)
+
+
+def test_plane_fit_is_exact_on_flat_ground():
+    clean = disparity_of(AnalyticScene(), noise_px=0.0)
+    valid = clean > 1.0
+    plane = S.fit_disparity_plane(clean, valid)
+    resid = clean - S.plane_disparity(plane, clean.shape)
+    assert plane[2] == -1.0 and np.abs(resid[valid]).max() < 1e-3
+    # flat ground: disparity depends on the row only, with slope B cos(p) / h
+    assert plane[0] == pytest.approx(0.0, abs=1e-6)
+    assert plane[1] == pytest.approx(0.3 * np.cos(np.radians(20)) / 1.5, rel=1e-3)
+
+
+def test_column_runs_known_answer():
+    m = np.zeros((6, 2), bool)
+    m[1:3, 0] = m[4:6, 0] = m[0:6, 1] = True
+    starts, ends, cols = S.column_runs(m)
+    assert sorted(zip(cols, starts, ends)) == [(0, 1, 3), (0, 4, 6), (1, 0, 6)]
+
+
+def test_rim_discontinuity_across_an_invalid_gap():
+    d = np.tile(np.linspace(5.0, 10.0, 40)[:, None], (1, 3))  # disparity grows down the image
+    d[:20] -= 2.0  # a 2 px drop going up at row 20 -> rim pixel is row 20
+    d[18:20, 1] = np.nan  # invalid pixels at the discontinuity in column 1
+    rims = S.rim_discontinuities(d, S.StereoConfig())
+    assert np.nonzero(rims[:, 0])[0].tolist() == [20]
+    assert np.nonzero(rims[:, 1])[0].tolist() == [20]
+
+
+def test_far_wall_regions_pair_with_the_near_rim(crater_disparity):
+    cfg = S.StereoConfig()
+    valid = crater_disparity > 1
+    disp = S.median_filter(crater_disparity, valid, 5)
+    plane_d = S.plane_disparity(S.fit_disparity_plane(disp, valid), disp.shape)
+    walls = S.far_wall_mask(np.where(valid, disp - plane_d, np.nan), plane_d, cfg, 0.5)
+    labels = S.wall_regions(walls, 30)
+    rims = S.rim_discontinuities(disp, cfg)
+    assert labels.max() >= 1 and rims.any()
+    paired = []
+    for lab in range(1, labels.max() + 1):  # far wall pairs; the near rim's outer flank does not
+        rows, cols = np.nonzero(labels == lab)
+        paired.append(np.mean([rims[r + 1 : r + 1 + cfg.pair_rows, c].any()
+                               for c in np.unique(cols) for r in [rows[cols == c].max()]]))
+    assert max(paired) > 0.9 and min(paired) < 0.5
+
+
+def test_detects_center_and_diameter(crater_disparity):
+    dets = S.detect_craters_stereo(crater_disparity, CAMERA)
+    assert len(dets) == 1
+    det = dets[0]
+    assert np.hypot(*(det.center_m[:2] - CENTER)) < 0.3
+    assert det.diameter_m == pytest.approx(CRATER_D, rel=0.05)
+    assert det.near_rim_range_m == pytest.approx(np.hypot(*CENTER) - 5.0, abs=0.4)
+    assert det.score > 0.8 and det.bbox_px[2] > 0
+
+
+def test_circle_fit_known_answer():
+    t = np.linspace(0, np.pi, 50)
+    xy = np.column_stack([3 + 4 * np.cos(t), -2 + 4 * np.sin(t)])
+    center, radius = S.fit_circle(xy)
+    assert center == pytest.approx([3, -2], abs=1e-9) and radius == pytest.approx(4.0)
+    assert S.fit_circle(np.zeros((2, 2))) is None
+
+
+def test_flat_and_invalid_maps_give_no_detection(flat_disparity):
+    assert S.detect_craters_stereo(flat_disparity, CAMERA) == []
+    assert S.detect_craters_stereo(np.full((64, 64), np.nan), CAMERA) == []
+    assert S.detect_craters_stereo(np.zeros((64, 64)), CAMERA) == []
+
+
+def test_bad_input_raises(crater_disparity):
+    with pytest.raises(InputError, match="disparity"):
+        S.detect_craters_stereo(np.zeros((4, 64, 64)), CAMERA)
+    with pytest.raises(InputError, match="camera: missing key"):
+        S.detect_craters_stereo(crater_disparity, {"fx": 256.0})
+    with pytest.raises(InputError, match="median_px"):
+        S.detect_craters_stereo(crater_disparity, CAMERA, config=S.StereoConfig(median_px=7))

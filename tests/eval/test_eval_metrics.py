@@ -1,0 +1,96 @@
+"""Known-answer tests for COCO AP and the paper's Pd / false-alarm metrics."""
+
+import numpy as np
+import pytest
+
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.eval.coco_metrics import coco_ap
+from lunarnav_ml.eval.pd import match_craters, pd_by, pick_operating_threshold
+from lunarnav_ml.eval.report import detection_metrics, render_markdown
+
+CATS = [{"id": 1, "name": "crater"}, {"id": 2, "name": "rock"}, {"id": 3, "name": "artifact"}]
+
+
+def _gt():
+    images = [{"id": i, "width": 100, "height": 100, "file_name": f"{i}.png",
+               "sun_zenith_deg": 20.0 * i, "sun_azimuth_deg": 300.0} for i in (1, 2)]
+    anns = [
+        {"id": 1, "image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20],
+         "near_rim_range_m": 8.0, "diameter_m": 6.0},
+        {"id": 2, "image_id": 1, "category_id": 1, "bbox": [60, 60, 20, 10],
+         "near_rim_range_m": 16.0, "diameter_m": 12.0},
+        {"id": 3, "image_id": 2, "category_id": 1, "bbox": [5, 5, 30, 30], "ignore": True,
+         "near_rim_range_m": 40.0, "diameter_m": 6.0},
+        {"id": 4, "image_id": 2, "category_id": 2, "bbox": [50, 50, 10, 10]},
+    ]
+    for a in anns:
+        a["area"] = a["bbox"][2] * a["bbox"][3]
+    return {"images": images, "annotations": anns, "categories": CATS}
+
+
+def _det(img, cat, bbox, score):
+    return {"image_id": img, "category_id": cat, "bbox": bbox, "score": score}
+
+
+def test_perfect_detections_give_ap_one():
+    gt = _gt()
+    results = [_det(a["image_id"], a["category_id"], a["bbox"], 0.9)
+               for a in gt["annotations"] if not a.get("ignore")]
+    m = coco_ap(gt, results)
+    assert m["per_class"]["crater"]["AP50"] == pytest.approx(1.0)
+    assert m["per_class"]["rock"]["AP"] == pytest.approx(1.0)
+    assert m["per_class"]["artifact"]["AP"] is None  # no ground truth
+    assert m["per_class"]["crater"]["n_gt"] == 2
+
+
+def test_detection_on_ignored_box_is_not_a_false_alarm():
+    gt = _gt()
+    results = [_det(1, 1, [10, 10, 20, 20], 0.9), _det(2, 1, [5, 5, 30, 30], 0.8),
+               _det(2, 1, [70, 0, 20, 20], 0.7)]
+    match = match_craters(gt, results, threshold=0.5)
+    assert match.hit.tolist() == [True, False]
+    assert match.false_alarms == 1  # only the box on empty ground
+    assert match.fa_per_image == 0.5
+    # ignored boxes also do not count in pycocotools AP: one of two craters found at top score
+    assert coco_ap(gt, results)["per_class"]["crater"]["AP50"] == pytest.approx(0.5, abs=0.02)
+
+
+def test_threshold_and_low_iou():
+    gt = _gt()
+    results = [_det(1, 1, [10, 10, 20, 20], 0.3), _det(1, 1, [60, 60, 40, 40], 0.9)]
+    assert match_craters(gt, results, threshold=0.5).hit.tolist() == [False, False]
+    assert match_craters(gt, results, threshold=0.2).hit.tolist() == [True, False]
+
+
+def test_operating_threshold_respects_false_alarm_budget():
+    gt = _gt()
+    results = [_det(1, 1, [10, 10, 20, 20], 0.9), _det(1, 1, [60, 60, 20, 10], 0.6),
+               _det(1, 1, [0, 80, 10, 10], 0.7), _det(2, 1, [80, 0, 10, 10], 0.4)]
+    thr = pick_operating_threshold(gt, results, max_fa_per_image=0.5)
+    assert thr == pytest.approx(0.6)  # admits the 0.7 false alarm (0.5 per image) but not the 0.4
+    assert match_craters(gt, results, thr).fa_per_image <= 0.5
+    assert pick_operating_threshold(gt, results, max_fa_per_image=0.0) == pytest.approx(0.9)
+    assert pick_operating_threshold(gt, [], 0.2) == 1.0
+
+
+def test_pd_bins_and_report():
+    gt = _gt()
+    results = [_det(1, 1, [10, 10, 20, 20], 0.9)]
+    match = match_craters(gt, results, 0.5)
+    rows = pd_by(match, "near_rim_range_m", [5, 10, 20])
+    assert [(r["n"], r["pd"]) for r in rows] == [(1, 1.0), (1, 0.0)]
+    metrics = detection_metrics(gt, results, 0.5)
+    assert metrics["crater_pd_D5_within20m"] == pytest.approx(0.5)
+    assert metrics["pd_vs_sun_azimuth"][2]["n"] == 2  # 300 deg folds to 60 deg
+    text = render_markdown(metrics, "t")
+    assert "| crater |" in text and "Pd vs near-rim range" in text
+
+
+def test_bad_detections_raise_naming_the_item():
+    gt = _gt()
+    with pytest.raises(InputError, match="detection 0: unknown category_id 7"):
+        coco_ap(gt, [_det(1, 7, [0, 0, 1, 1], 0.5)])
+    with pytest.raises(InputError, match="detection 0: image_id 99"):
+        coco_ap(gt, [_det(99, 1, [0, 0, 1, 1], 0.5)])
+    with pytest.raises(InputError, match="finite"):
+        coco_ap(gt, [_det(1, 1, [0, np.nan, 1, 1], 0.5)])

@@ -1,0 +1,89 @@
+"""``lunarnav export`` / ``lunarnav bench`` and the top-level export/ scripts."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import pytest
+
+from lunarnav_ml.cli import build_parser
+from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.export.bench import synthetic_frame
+from lunarnav_ml.export.cli import main
+from lunarnav_ml.runtime import OnnxDetector
+
+ROOT = Path(__file__).parents[2]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(parts, tmp_path_factory):
+    from lunarnav_ml.training.api import Detector
+
+    out = tmp_path_factory.mktemp("ckpt") / "nano.pt"
+    return Detector(parts.model, 128, list(parts.class_names), "nano").save(out)
+
+
+def parse(*argv):
+    return build_parser(("lunarnav_ml.export.cli",)).parse_args(argv)
+
+
+def test_export_with_int8(checkpoint, tmp_path, capsys):
+    calib = tmp_path / "calib"
+    calib.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(calib / f"{i}.png"), synthetic_frame(128, seed=i))
+    args = parse("export", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "m.onnx"),
+                 "--nms", "--int8-out", str(tmp_path / "m8.onnx"), "--calib", str(calib))
+    assert args.func(args) == 0
+    assert "m8.onnx (int8, 3 calibration images)" in capsys.readouterr().out
+    fp32, int8 = OnnxDetector(tmp_path / "m.onnx"), OnnxDetector(tmp_path / "m8.onnx")
+    assert fp32.metadata.nms_in_graph and fp32.metadata.precision == "fp32"
+    assert int8.metadata.nms_in_graph and int8.metadata.precision == "int8"
+    assert len(int8.predict([synthetic_frame(128)], conf_thres=0.001)[0]["boxes"]) > 0
+
+
+def test_int8_needs_calibration_images(checkpoint, tmp_path):
+    args = parse("export", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "m.onnx"),
+                 "--int8-out", str(tmp_path / "m8.onnx"))
+    with pytest.raises(ConfigError, match="--calib"):
+        args.func(args)
+    assert not (tmp_path / "m.onnx").exists()
+
+
+def test_bench_prints_median_and_p90(onnx_path, capsys):
+    args = parse("bench", "--onnx", str(onnx_path), "--sizes", "64", "--runs", "2",
+                 "--warmup", "0", "--threads", "1", "2")
+    assert args.func(args) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 2 and all("median" in ln and "p90" in ln and "GFLOP/s" in ln
+                                   for ln in lines)
+
+
+def test_bench_eager_torch(checkpoint, capsys):
+    args = parse("bench", "--checkpoint", str(checkpoint), "--sizes", "64", "--runs", "1",
+                 "--warmup", "0")
+    assert args.func(args) == 0
+    assert "torch-eager" in capsys.readouterr().out
+
+
+def test_bench_needs_a_model():
+    args = parse("bench")
+    with pytest.raises(ConfigError, match="--onnx"):
+        args.func(args)
+
+
+def test_errors_are_one_line_exit_2(tmp_path, capsys):
+    code = main(["export", "--checkpoint", str(tmp_path / "nope.pt"), "--out",
+                 str(tmp_path / "m.onnx")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "nope.pt" in err
+
+
+@pytest.mark.parametrize(("script", "command"), [("export_onnx.py", "export"),
+                                                  ("bench.py", "bench")])
+def test_top_level_scripts_are_thin_entry_points(script, command):
+    proc = subprocess.run([sys.executable, str(ROOT / "export" / script), "--help"],
+                          check=False, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert f"usage: lunarnav {command}" in proc.stdout

@@ -1,0 +1,103 @@
+"""Static int8 quantization: integer convs, fp32 decode tail, accuracy close to fp32, inputs."""
+
+import json
+
+import cv2
+import numpy as np
+import onnx
+import pytest
+
+from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.export.bench import synthetic_frame
+from lunarnav_ml.export.quantize import (
+    fp32_tail_nodes,
+    load_calibration_images,
+    mish_nodes,
+    quantize_int8,
+)
+from lunarnav_ml.runtime import OnnxDetector
+
+
+@pytest.fixture(scope="module")
+def int8_path(onnx_path, tmp_path_factory):
+    images = [synthetic_frame(128, seed=s) for s in range(6)]
+    return quantize_int8(onnx_path, tmp_path_factory.mktemp("q") / "nano_int8.onnx", images)
+
+
+def test_tail_is_decode_and_last_head_convs(onnx_path):
+    graph = onnx.load(onnx_path).graph
+    tail = set(fp32_tail_nodes(graph))
+    convs = [n.name for n in graph.node if n.op_type == "Conv"]
+    tail_convs = [c for c in convs if c in tail]
+    assert len(tail_convs) == 3 and all("head/preds" in c for c in tail_convs)
+    assert {n.op_type for n in graph.node if n.name in tail} >= {"Sigmoid", "Exp", "Concat"}
+    assert not any("backbone" in name for name in tail)
+
+
+def test_mish_islands_found(onnx_path):
+    graph = onnx.load(onnx_path).graph
+    names = set(mish_nodes(graph))
+    exps = [n for n in graph.node if n.op_type == "Exp" and n.name in names]
+    assert len(exps) == 44  # nano: every backbone activation
+    assert {n.op_type for n in graph.node if n.name in names} == {
+        "Constant", "Clip", "Exp", "Add", "Mul", "Div"}
+    assert not names & set(fp32_tail_nodes(graph))
+
+
+def test_int8_graph_and_metadata(int8_path):
+    model = onnx.load(int8_path)
+    ops = [n.op_type for n in model.graph.node]
+    assert ops.count("QuantizeLinear") > 50 and ops.count("DequantizeLinear") > 50
+    det = OnnxDetector(int8_path)
+    assert det.metadata.precision == "int8"
+    assert det.metadata.extra["calibration"]["images"] == 6
+    assert det.metadata.class_names == ("crater", "rock", "artifact")
+
+
+def test_int8_outputs_track_fp32(onnx_path, int8_path):
+    """An untrained net is a harsh case (no margin in its logits); the accuracy of a trained
+    one is measured in benchmarks/bench_runtime.py (crater AP50 fp32 vs int8)."""
+    images = [synthetic_frame(128, seed=s) for s in range(20, 24)]
+    fp32, int8 = OnnxDetector(onnx_path), OnnxDetector(int8_path)
+    batch, _ = fp32.preprocess(images)
+    a, b = fp32.forward(batch), int8.forward(batch)
+    assert not np.array_equal(a, b)  # it was quantized
+    assert np.median(np.abs(a[..., :2] - b[..., :2])) < 1.0  # box centres, px
+    logit = lambda p: np.log(p / (1 - p)).ravel()
+    assert np.corrcoef(logit(a[..., 4]), logit(b[..., 4]))[0, 1] > 0.8
+
+
+def test_quantizing_twice_or_without_images_is_refused(onnx_path, int8_path, tmp_path):
+    with pytest.raises(InputError, match="expected an fp32 export"):
+        quantize_int8(int8_path, tmp_path / "q.onnx", [synthetic_frame(128)])
+    with pytest.raises(InputError, match="at least one image"):
+        quantize_int8(onnx_path, tmp_path / "q.onnx", [])
+    with pytest.raises(ConfigError, match="method"):
+        quantize_int8(onnx_path, tmp_path / "q.onnx", [synthetic_frame(128)], method="kl")
+    cut = tmp_path / "cut.onnx"
+    cut.write_bytes(onnx_path.read_bytes()[:3000])
+    with pytest.raises(InputError, match="cut.onnx"):
+        quantize_int8(cut, tmp_path / "q.onnx", [synthetic_frame(128)])
+    assert not (tmp_path / "q.onnx").exists()
+
+
+def test_calibration_images_from_a_dataset_folder(tmp_path):
+    (tmp_path / "images" / "left").mkdir(parents=True)
+    records = []
+    for i in range(5):
+        name = f"images/left/{i:03d}.png"
+        cv2.imwrite(str(tmp_path / name), np.full((40, 60), 10 * i, np.uint8))
+        records.append({"id": i, "file_name": name})
+    (tmp_path / "annotations.json").write_text(json.dumps({"images": records}))
+    images = load_calibration_images(tmp_path, n=3)
+    assert [im[0, 0, 0] for im in images] == [0, 20, 40]
+    assert all(im.shape == (40, 60, 3) and im.dtype == np.uint8 for im in images)
+    assert len(load_calibration_images(tmp_path / "images", n=10)) == 5
+    with pytest.raises(InputError, match="no images"):
+        load_calibration_images(tmp_path / "images" / "left" / "..", n=0) if False else \
+            load_calibration_images(_empty(tmp_path), n=3)
+
+
+def _empty(tmp_path):
+    (tmp_path / "empty").mkdir()
+    return tmp_path / "empty"

@@ -1,0 +1,63 @@
+import numpy as np
+import pytest
+
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.geometry.frames import (
+    StereoRig,
+    camera_to_rover,
+    camera_to_rover_rotation,
+    rover_to_camera,
+)
+
+
+def test_level_camera_axes():
+    r = camera_to_rover_rotation(0.0)
+    np.testing.assert_allclose(r @ [0, 0, 1], [1, 0, 0], atol=1e-12)  # forward
+    np.testing.assert_allclose(r @ [1, 0, 0], [0, -1, 0], atol=1e-12)  # right = -left
+    np.testing.assert_allclose(r @ [0, 1, 0], [0, 0, -1], atol=1e-12)  # down
+
+
+def test_pitch_down_and_roll():
+    p = 20.0
+    fwd = camera_to_rover_rotation(p) @ [0, 0, 1]
+    np.testing.assert_allclose(fwd, [np.cos(np.radians(p)), 0, -np.sin(np.radians(p))], atol=1e-12)
+    right = camera_to_rover_rotation(0.0, 10.0) @ [1, 0, 0]
+    assert right[2] < 0  # positive roll: right side down
+    r = camera_to_rover_rotation(13.0, -4.0)
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+
+
+def test_round_trip_and_ground_point():
+    h, p = 1.5, 20.0
+    # the optical axis meets the ground at h / tan(p) ahead
+    d = h / np.tan(np.radians(p))
+    cam = rover_to_camera([[d, 0.0, 0.0]], h, p)
+    np.testing.assert_allclose(cam[0, :2], 0.0, atol=1e-12)
+    assert cam[0, 2] == pytest.approx(np.hypot(d, h))
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(20, 3))
+    np.testing.assert_allclose(camera_to_rover(rover_to_camera(pts, h, p, 3.0), h, p, 3.0), pts)
+
+
+def test_matches_synth_camera_convention():
+    # synth.camera.rotation_from_angles: columns are the camera axes in the scene frame
+    synth_cam = pytest.importorskip("lunarnav_ml.synth.camera")
+    for pitch, roll in ((20.0, 0.0), (12.0, 5.0), (-3.0, -7.0)):
+        np.testing.assert_allclose(
+            camera_to_rover_rotation(pitch, roll),
+            synth_cam.rotation_from_angles(0.0, pitch, roll), atol=1e-12,
+        )
+
+
+def test_rig_from_camera_record():
+    rec = {"height_m": 1.5, "pitch_deg": 20.0, "roll_deg": 0.0, "fov_deg": 90.0,
+           "baseline_m": 0.3, "fx": 512.0, "fy": 512.0, "cx": 511.5, "cy": 511.5}
+    rig = StereoRig.from_camera_record(rec)
+    assert rig.focal_px == 512.0 and rig.height_m == 1.5
+    np.testing.assert_allclose(rig.rays([[511.5, 511.5]]), [[0, 0, 1]])
+    with pytest.raises(InputError, match="missing"):
+        StereoRig.from_camera_record({"fx": 1.0})
+    with pytest.raises(InputError, match="fx"):
+        StereoRig.from_camera_record({**rec, "fy": 500.0})
+    with pytest.raises(InputError, match="positive"):
+        StereoRig(0.0, 0.3, 1, 1, 1.5, 0)

@@ -1,0 +1,77 @@
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.geometry.frames import rover_to_camera
+from lunarnav_ml.geometry.report import geometry_report, summarize
+
+
+def _write_dataset(root, sc) -> None:
+    (root / "images" / "left").mkdir(parents=True)
+    (root / "images" / "right").mkdir(parents=True)
+    cv2.imwrite(str(root / "images/left/0.png"), sc.left)
+    cv2.imwrite(str(root / "images/right/0.png"), sc.right)
+    r = sc.rig
+    cam = {"height_m": r.height_m, "pitch_deg": r.pitch_deg, "roll_deg": 0.0, "fov_deg": 90.0,
+           "baseline_m": r.baseline_m, "fx": r.focal_px, "fy": r.focal_px, "cx": r.cx, "cy": r.cy}
+    center_cam = rover_to_camera(sc.center_rover, r.height_m, r.pitch_deg)[0]
+    box = [float(sc.box[0] + 0.5), float(sc.box[1] + 0.5), float(sc.box[2]), float(sc.box[3])]
+    ann = {"id": 1, "image_id": 1, "category_id": 1, "bbox": box, "ignore": False, "iscrowd": 0,
+           "diameter_m": sc.crater.diameter, "center_cam_m": center_cam.tolist(),
+           "near_rim_range_m": 8.0, "ellipse": sc.ellipse.to_array().tolist()}
+    small = {**ann, "id": 2, "diameter_m": 1.0}  # below min_diameter_m: not evaluated
+    coco = {"images": [{"id": 1, "file_name": "images/left/0.png", "right_file": "images/right/0.png",
+                        "width": sc.left.shape[1], "height": sc.left.shape[0], "camera": cam}],
+            "annotations": [ann, small], "categories": [{"id": 1, "name": "crater"}]}
+    (root / "annotations.json").write_text(json.dumps(coco))
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory, crater_scene):
+    root = tmp_path_factory.mktemp("geo_ds")
+    _write_dataset(root, crater_scene)
+    return root
+
+
+def test_report_on_labelled_boxes(dataset, tmp_path):
+    m = geometry_report(dataset, tmp_path / "out")
+    assert m["overall"]["n"] == 1 and m["overall"]["n_lifted"] == 1
+    assert m["overall"]["pd_3d"] == 1.0
+    assert m["overall"]["center_3sigma_m"] < 1.0
+    for name in ("geometry_metrics.json", "geometry_craters.json", "geometry_report.md",
+                 "geometry_errors.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 0
+    assert "paper stereo" in (tmp_path / "out" / "geometry_report.md").read_text()
+    rows = json.loads((tmp_path / "out" / "geometry_craters.json").read_text())
+    assert rows[0]["ok"] and rows[0]["center_err_m"] < 0.35
+
+
+def test_report_with_detections(dataset, tmp_path):
+    ann = json.loads((dataset / "annotations.json").read_text())["annotations"][0]
+    far = [{"image_id": 1, "category_id": 1, "bbox": [0, 0, 10, 10], "score": 0.9}]
+    m = geometry_report(dataset, tmp_path / "a", detections=far, plots=False)
+    assert m["reasons"] == {"not_detected": 1} and m["overall"]["pd_3d"] == 0.0
+    hit = [{"image_id": 1, "category_id": 1, "bbox": ann["bbox"], "score": 0.9}]
+    m = geometry_report(dataset, tmp_path / "b", detections=hit, ellipse_source="label", plots=False)
+    assert m["overall"]["n_lifted"] == 1
+
+
+def test_report_bad_inputs(tmp_path, dataset):
+    with pytest.raises(InputError, match="annotations"):
+        geometry_report(tmp_path / "nowhere", tmp_path / "out")
+    with pytest.raises(InputError, match="ellipse_source"):
+        geometry_report(dataset, tmp_path / "out", ellipse_source="magic")
+
+
+def test_summarize_three_sigma_known_answer():
+    rows = [{"diameter_m": 5.0, "near_rim_range_m": 16.0, "ok": True, "reason": "ok",
+             "center_err_m": e, "diameter_err_m": -e, "sigma_h_m": 0.5} for e in (0.3, 0.4, 1.4)]
+    rows.append({"diameter_m": 5.0, "near_rim_range_m": 9.0, "ok": False, "reason": "lift:x"})
+    m = summarize(rows)
+    near = m["per_diameter"]["5.0"]["range_15_20"]
+    assert near["n"] == 3 and near["n_lifted"] == 3
+    assert near["center_3sigma_m"] == pytest.approx(3 * np.sqrt((0.09 + 0.16 + 1.96) / 3))
+    assert near["pd_3d"] == pytest.approx(2 / 3)  # 1.4 m > max(1 m, 0.25 D = 1.25 m): a miss

@@ -1,0 +1,121 @@
+import math
+
+import pytest
+import torch
+
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.losses import YOLOLoss, ciou, wh_iou
+from lunarnav_ml.losses.assigner import assign, flatten_targets
+from lunarnav_ml.models import build_model
+
+
+def _targets():
+    return [{"boxes": torch.tensor([[8.0, 8.0, 40.0, 48.0], [30.0, 30.0, 60.0, 50.0]]),
+             "labels": torch.tensor([1, 2]), "ignore": torch.tensor([False, True])},
+            {"boxes": torch.tensor([[20.0, 10.0, 52.0, 40.0]]), "labels": torch.tensor([3])}]
+
+
+def _model():
+    torch.manual_seed(0)
+    model = build_model("nano")
+    model.set_anchors(torch.tensor([[[8, 8], [12, 16], [16, 12]], [[24, 24], [32, 40], [40, 32]],
+                                    [[48, 48], [56, 56], [64, 64]]], dtype=torch.float32))
+    return model
+
+
+def test_ciou_known_answers():
+    box = torch.tensor([[10.0, 10.0, 4.0, 4.0]])
+    c, iou = ciou(box, box)
+    torch.testing.assert_close(c, torch.tensor([1.0]))
+    # same size, shifted by one width: IoU 0, centre term 4^2 / (8^2 + 4^2)
+    c, iou = ciou(torch.tensor([[14.0, 10.0, 4.0, 4.0]]), box)
+    torch.testing.assert_close(iou, torch.tensor([0.0]))
+    torch.testing.assert_close(c, torch.tensor([-16 / 80]), atol=1e-5, rtol=0)
+    assert wh_iou(torch.tensor([[2.0, 2.0]]), torch.tensor([[2.0, 2.0], [4.0, 4.0]])).tolist() == [
+        [1.0, 0.25]]
+
+
+def test_assign_best_anchor_always_and_extra_above_threshold():
+    gt = torch.tensor([[0, 0, 20.0, 20.0, 12.0, 16.0]])  # image 0, class 0, exactly anchor (0, 1)
+    anchors = _model().anchors
+    levels = assign(gt, anchors, (8, 16, 32), [(8, 8), (4, 4), (2, 2)], iou_thresh=0.7)
+    assert levels[0].anchor.tolist() == [1] and levels[0].gx.tolist() == [2]
+    assert sum(len(lv.batch) for lv in levels) == 1
+    loose = assign(gt, anchors, (8, 16, 32), [(8, 8), (4, 4), (2, 2)], iou_thresh=0.2)
+    assert sum(len(lv.batch) for lv in loose) > 1  # several anchors per ground truth
+
+
+def test_flatten_separates_ignore_regions():
+    gt, ign = flatten_targets(_targets(), torch.device("cpu"))
+    assert gt.shape == (2, 6) and ign.shape == (1, 5)
+    assert gt[:, 0].tolist() == [0, 1] and gt[:, 1].tolist() == [0, 2]  # class index = id - 1
+    torch.testing.assert_close(gt[0, 2:], torch.tensor([24.0, 28.0, 32.0, 40.0]))
+
+
+def test_loss_returns_named_terms():
+    model = _model()
+    x = torch.rand(2, 3, 64, 64)
+    out = YOLOLoss(3)(model(x), _targets(), model.anchors, model.strides, model.scale_xy)
+    assert set(out) == {"box", "obj", "cls", "loss"}
+    assert all(torch.isfinite(v) and v.ndim == 0 for v in out.values())
+    torch.testing.assert_close(out["loss"], out["box"] + out["obj"] + out["cls"])
+
+
+def test_loss_handles_images_without_boxes():
+    model = _model()
+    empty = [{"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.long)}]
+    out = YOLOLoss(3)(model(torch.rand(1, 3, 64, 64)), empty, model.anchors, model.strides,
+                      model.scale_xy)
+    assert out["box"] == 0 and out["cls"] == 0 and out["obj"] > 0
+    out["loss"].backward()
+
+
+def test_loss_falls_when_overfitting_one_batch():
+    model = _model()
+    loss_fn = YOLOLoss(3)
+    x = torch.rand(2, 3, 64, 64)
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    losses = []
+    for _ in range(25):
+        out = loss_fn(model(x), _targets(), model.anchors, model.strides, model.scale_xy)
+        opt.zero_grad()
+        out["loss"].backward()
+        opt.step()
+        losses.append(float(out["loss"].detach()))
+    assert losses[-1] < 0.5 * losses[0]
+
+
+def test_ignore_region_removes_negative_penalty():
+    model = _model()
+    x = torch.rand(1, 3, 64, 64)
+    raw = model(x)
+    base = [{"boxes": torch.tensor([[0.0, 0.0, 64.0, 64.0]]), "labels": torch.tensor([1]),
+             "ignore": torch.tensor([True])}]
+    none = [{"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.long)}]
+    loss_fn = YOLOLoss(3)
+    ignored = loss_fn(raw, base, model.anchors, model.strides, model.scale_xy)
+    plain = loss_fn(raw, none, model.anchors, model.strides, model.scale_xy)
+    assert ignored["obj"] < 0.05 * plain["obj"]  # every prediction lies in the ignore region
+    assert ignored["box"] == 0
+
+
+@pytest.mark.parametrize("boxes, labels, match", [
+    ([[1.0, 2.0, math.nan, 9.0]], [1], r"targets\[0\]\['boxes'\]\[0\] is not finite"),
+    ([[10.0, 10.0, 5.0, 20.0]], [1], "non-positive width or height"),
+    ([[1.0, 1.0, 5.0, 5.0]], [4], r"labels'\]\[0\] = 4 is not a category id in 1..3"),
+    ([[1.0, 1.0, 5.0, 5.0]], [0], "is not a category id"),
+    ([[1.0, 1.0, 5.0]], [1], r"boxes must be \(N, 4\)"),
+])
+def test_malformed_targets_raise(boxes, labels, match):
+    model = _model()
+    raw = model(torch.rand(1, 3, 64, 64))
+    bad = [{"boxes": torch.tensor(boxes), "labels": torch.tensor(labels)}]
+    with pytest.raises(InputError, match=match):
+        YOLOLoss(3)(raw, bad, model.anchors, model.strides, model.scale_xy)
+
+
+def test_wrong_number_of_targets_raises():
+    model = _model()
+    raw = model(torch.rand(2, 3, 64, 64))
+    with pytest.raises(InputError, match="1 entries for a batch of 2"):
+        YOLOLoss(3)(raw, _targets()[:1], model.anchors, model.strides, model.scale_xy)

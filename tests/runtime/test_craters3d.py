@@ -1,0 +1,72 @@
+"""Stereo crater stage: box -> rim ellipse -> 3D center on a ray-cast scene with known truth."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.runtime import OnnxDetector, StereoCraterLocalizer
+
+
+from tests.geometry.geometry_scene import render_crater_scene
+
+
+class TruthDetector:
+    """Returns the true crater box (and a rock elsewhere) whatever the image."""
+
+    class_names = ("crater", "rock", "artifact")
+
+    def __init__(self, box_xywh):
+        x, y, w, h = box_xywh
+        self.boxes = np.array([[x, y, x + w, y + h], [0, 0, 10, 10]], np.float32)
+
+    def predict(self, images, conf_thres=0.25, iou_thres=0.6):
+        return [{"boxes": self.boxes, "scores": np.array([0.9, 0.8], np.float32),
+                 "labels": np.array([1, 2])}]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return render_crater_scene(6.0, 7.0, size=(480, 360), pitch_deg=10.0,
+                               sun_zenith_deg=60.0, sun_azimuth_deg=30.0, seed=3)
+
+
+def rgb(gray):
+    return np.repeat(gray[:, :, None], 3, axis=2)
+
+
+def test_crater_lifted_to_its_true_center(scene):
+    loc = StereoCraterLocalizer(TruthDetector(scene.box), scene.rig)
+    craters = loc(rgb(scene.left), rgb(scene.right))
+    assert len(craters) == 1  # the rock box is not a crater
+    c = craters[0]
+    assert c.ok, c.reason
+    d = scene.crater.diameter
+    assert np.hypot(*(c.center_m[:2] - scene.center_rover[:2])) < max(1.0, 0.25 * d)
+    assert abs(c.diameter_m - d) < 0.25 * d
+    assert c.ellipse is not None and 0 < c.ellipse_quality <= 1
+
+
+def test_runs_with_the_onnx_detector(scene, onnx_path):
+    loc = StereoCraterLocalizer(OnnxDetector(onnx_path), scene.rig, conf_thres=0.01)
+    craters = loc(rgb(scene.left), rgb(scene.right))
+    assert all(c.reason == "ok" or c.reason.split(":")[0] in ("ellipse", "lift")
+               for c in craters)
+    assert all(np.isfinite(c.center_m).all() == c.ok for c in craters)
+
+
+def test_bad_pairs_and_detectors(scene):
+    loc = StereoCraterLocalizer(TruthDetector(scene.box), scene.rig)
+    left = rgb(scene.left)
+    with pytest.raises(InputError, match="right"):
+        loc(left, left[:-2])
+    with pytest.raises(InputError, match=r"images\[1\].*uint8"):
+        loc(left, left.astype(np.float32))
+
+    class NoCraters(TruthDetector):
+        class_names = ("rock", "artifact")
+
+    with pytest.raises(ConfigError, match="no 'crater'"):
+        StereoCraterLocalizer(NoCraters(scene.box), scene.rig)

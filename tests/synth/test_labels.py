@@ -1,0 +1,71 @@
+"""Crater labels match the projected rim geometry; object boxes come from visible pixels."""
+
+import math
+
+import cv2
+import numpy as np
+
+from lunarnav_ml.synth import pipeline as P
+from lunarnav_ml.synth.camera import make_rig
+from lunarnav_ml.synth.config import SynthConfig
+
+from .conftest import one_crater_spec
+
+
+def _expected_rim(spec, cfg, size):
+    """Rim circle projected independently: flat ground at z = 0, rim crest at the rim height."""
+    scene = P.TerrainCache().get(spec.terrain, cfg)
+    crater = scene.craters[-1]
+    t = spec.terrain.targets[0]
+    a = np.linspace(0, 2 * np.pi, 3600, endpoint=False)
+    pts = np.stack([t.x + t.diameter / 2 * np.cos(a), t.y + t.diameter / 2 * np.sin(a),
+                    np.full(a.size, crater.rim_height_m)], 1)
+    rig = make_rig(np.zeros(3), width=size, height=size, fov_deg=90.0, height_m=1.5,
+                   yaw_deg=0.0, pitch_deg=spec.pitch_deg, roll_deg=spec.roll_deg,
+                   baseline_m=0.3)
+    f = (size / 2) / math.tan(math.radians(45))
+    pc = (pts - rig.left.position) @ rig.left.rot
+    uv = np.stack([f * pc[:, 0] / pc[:, 2] + (size - 1) / 2,
+                   f * pc[:, 1] / pc[:, 2] + (size - 1) / 2], 1)
+    return uv
+
+
+def test_single_crater_box_and_ellipse_match_projection(small_cfg):
+    spec = one_crater_spec(diameter=8.0, x=12.0, y=1.5, roll=4.0)
+    out = P.render_item(spec, small_cfg, 256, stereo=False)
+    craters = [a for a in out.annotations if a["category_id"] == 1]
+    assert len(craters) == 1
+    ann = craters[0]
+    uv = _expected_rim(spec, small_cfg, 256)
+    x0, y0 = uv.min(0) + 0.5
+    x1, y1 = uv.max(0) + 0.5
+    bx, by, bw, bh = ann["bbox"]
+    assert np.allclose([bx, by, bx + bw, by + bh], [x0, y0, x1, y1], atol=1.0)
+    (cx, cy), (w, h), ang = cv2.fitEllipse(uv.astype(np.float32))
+    ex = ann["ellipse"]
+    assert np.allclose(ex[:4], [cx, cy, w / 2, h / 2], atol=1.0)
+    assert abs((ex[4] - ang + 90) % 180 - 90) < 2.0
+    assert not ann["ignore"]
+    assert ann["near_rim_range_m"] == round(math.hypot(12.0, 1.5) - 4.0, 4)
+    assert ann["diameter_m"] == 8.0
+
+
+def test_crater_far_away_is_ignored():
+    cfg = SynthConfig.from_dict({"terrain": {"extent_m": 120.0, "resolution_m": 0.25}})
+    spec = one_crater_spec(diameter=10.0, x=45.0, y=0.0, pitch=8.0, height=8.0)
+    out = P.render_item(spec, cfg, 256, stereo=False)
+    anns = [a for a in out.annotations if a["category_id"] == 1 and a["diameter_m"] == 10.0]
+    assert anns and all(a["ignore"] and "far" in a["ignore_reasons"] for a in anns)
+
+
+def test_rock_boxes_come_from_visible_pixels(small_cfg):
+    spec = one_crater_spec(rocks=0.3)
+    out = P.render_item(spec, small_cfg, 256, stereo=False)
+    rocks = [a for a in out.annotations if a["category_id"] == 2]
+    assert rocks
+    for a in rocks:
+        x, y, w, h = a["bbox"]
+        mask = out.ids == a["object_id"] + (1 << 20) * a["tile"]
+        ys, xs = np.nonzero(mask)
+        assert (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1) == (x, y, x + w, y + h)
+        assert a["ignore"] == (h < 6)

@@ -1,0 +1,38 @@
+"""Every YAML config instantiates; the CPU config trains a fast_dev_run through the CLI."""
+
+from pathlib import Path
+
+import pytest
+
+from lunarnav_ml.data.datamodule import DetectionDataModule
+from lunarnav_ml.training.lightning_cli import run_cli
+from lunarnav_ml.training.module import DetectorModule
+
+CONFIGS = [pytest.param(c, id=c.stem, marks=[pytest.mark.slow] if "yolov4" in c.stem else [])
+           for c in sorted((Path(__file__).parents[2] / "configs").glob("*.yaml"))]
+
+
+def _data_args(coco):
+    return ["--data.train", str(coco["train"]), "--data.val", str(coco["val"])]
+
+
+@pytest.mark.parametrize("config", CONFIGS)  # the full YOLOv4 one (64 M params) is slow
+def test_every_config_instantiates(config, tiny_coco, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # runs/ folders land in the temporary directory
+    args = ["--config", str(config), *_data_args(tiny_coco), "--data.num_workers", "0",
+            "--trainer.accelerator", "cpu", "--trainer.devices", "1",
+            "--trainer.strategy", "auto", "--trainer.precision", "32",
+            "--trainer.sync_batchnorm", "false"]
+    cli = run_cli(args, run=False)
+    assert isinstance(cli.model, DetectorModule) and isinstance(cli.datamodule,
+                                                                 DetectionDataModule)
+    assert cli.model.hparams.img_size == cli.datamodule.img_size
+
+
+def test_cli_fast_dev_run(tiny_coco, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = Path(__file__).parents[2] / "configs" / "nano_cpu.yaml"
+    run_cli(["fit", "--config", str(config), *_data_args(tiny_coco), "--data.img_size", "64",
+             "--data.batch_size", "4", "--trainer.fast_dev_run", "2",
+             "--trainer.enable_progress_bar", "false"])
+    assert (tmp_path / "runs" / "nano_cpu").is_dir()

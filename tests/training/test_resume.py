@@ -1,0 +1,80 @@
+"""Resuming restores step, optimizer state, LR schedule and EMA; fine-tuning loads weights."""
+
+import lightning as L
+import pytest
+import torch
+from lightning.pytorch.loggers import CSVLogger
+
+from lunarnav_ml.data.datamodule import DetectionDataModule
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.training.module import DetectorModule
+from lunarnav_ml.training.trainer import build_callbacks
+
+
+class _Record(L.Callback):
+    """Snapshot of the training state when (re)starting."""
+
+    def on_train_start(self, trainer, pl_module):
+        opt = trainer.optimizers[0]
+        first = opt.param_groups[0]["params"][0]
+        self.step = trainer.global_step
+        self.lr = opt.param_groups[0]["lr"]
+        self.exp_avg = opt.state[first]["exp_avg"].clone() if first in opt.state else None
+        self.ema_updates = int(pl_module.ema.updates)
+        self.anchors = pl_module.model.anchors.clone()
+
+
+def _trainer(out, max_steps, record):
+    return L.Trainer(default_root_dir=out, max_steps=max_steps, accelerator="cpu",
+                     callbacks=[*build_callbacks(out / "ckpt", every_n_steps=2), record],
+                     logger=CSVLogger(out), enable_progress_bar=False, enable_model_summary=False,
+                     num_sanity_val_steps=0, limit_val_batches=1, val_check_interval=2)
+
+
+def _parts(coco, **kw):
+    L.seed_everything(0, workers=True)
+    dm = DetectionDataModule(coco["train"], coco["val"], img_size=64, batch_size=4)
+    return DetectorModule(img_size=64, warmup_steps=2, **kw), dm
+
+
+def test_resume_continues_step_optimizer_and_lr(tiny_coco, tmp_path):
+    module, dm = _parts(tiny_coco)
+    _trainer(tmp_path, 3, _Record()).fit(module, dm)  # stops at step 3, last.ckpt at step 2
+    ckpt_path = tmp_path / "ckpt" / "last.ckpt"
+    saved = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    assert saved["global_step"] == 2
+
+    record = _Record()
+    module, dm = _parts(tiny_coco)
+    _trainer(tmp_path, 5, record).fit(module, dm, ckpt_path=str(ckpt_path))
+    opt_state = saved["optimizer_states"][0]
+    assert record.step == 2
+    assert record.lr == pytest.approx(opt_state["param_groups"][0]["lr"])
+    assert saved["lr_schedulers"][0]["last_epoch"] == 2
+    torch.testing.assert_close(record.exp_avg, opt_state["state"][0]["exp_avg"])
+    assert record.ema_updates == 2
+    torch.testing.assert_close(record.anchors, saved["state_dict"]["model.anchors"])
+
+
+def test_finetune_from_checkpoint_with_frozen_backbone(tiny_coco, tmp_path):
+    module, dm = _parts(tiny_coco)
+    _trainer(tmp_path / "a", 2, _Record()).fit(module, dm)
+    source = tmp_path / "a" / "ckpt" / "last.ckpt"
+    weights = torch.load(source, map_location="cpu", weights_only=False)["state_dict"]
+
+    record = _Record()
+    module, dm = _parts(tiny_coco, init_from=str(source), freeze_backbone=True)
+    _trainer(tmp_path / "b", 2, record).fit(module, dm)
+    assert record.step == 0  # a new run, not a resume
+    torch.testing.assert_close(record.anchors, weights["ema.module.anchors"])
+    backbone = {k: v for k, v in module.model.state_dict().items() if k.startswith("backbone")}
+    for key, value in backbone.items():  # frozen: weights and BatchNorm statistics unchanged
+        torch.testing.assert_close(value, weights["ema.module." + key])
+    head = "head.preds.0.weight"
+    assert not torch.equal(module.model.state_dict()[head], weights["ema.module." + head])
+
+
+def test_finetune_rejects_other_preset(tiny_coco, tmp_path, trained):
+    other, dm = _parts(tiny_coco, preset="tiny", init_from=str(trained[0]))
+    with pytest.raises(InputError, match="weights do not fit this model"):
+        _trainer(tmp_path / "b", 1, _Record()).fit(other, dm)
