@@ -43,7 +43,11 @@ def build_parser(modules: Sequence[str] = STAGE_CLI_MODULES) -> argparse.Argumen
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``lunarnav`` console script."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra and not getattr(args, "forwards_args", False):
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if extra:  # a forwarding subcommand (``train``) takes what argparse did not know
+        args.cli_args = list(args.cli_args or []) + extra
     try:
         code = args.func(args)
     except (LunarNavError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as err:

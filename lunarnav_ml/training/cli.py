@@ -17,7 +17,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Forwards its arguments to the Lightning CLI of train.py, e.g. "
                     "'lunarnav train fit --config configs/nano_cpu.yaml'.")
     p.add_argument("cli_args", nargs=argparse.REMAINDER, help="LightningCLI arguments")
-    p.set_defaults(func=run_train)
+    p.set_defaults(func=run_train, forwards_args=True)
 
     p = subparsers.add_parser(
         "detect", help="detect craters, rocks and artifacts in an image or a folder",
@@ -39,7 +39,7 @@ def run_train(args: argparse.Namespace) -> int:
     """Run the LightningCLI with the forwarded arguments."""
     from lunarnav_ml.training.lightning_cli import run_cli
 
-    run_cli(args.cli_args or ["--help"])
+    run_cli(args.cli_args or ["--help"], prog="lunarnav train")
     return 0
 
 

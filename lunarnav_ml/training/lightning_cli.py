@@ -10,6 +10,7 @@ Examples::
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 from lightning.pytorch.cli import LightningCLI
@@ -26,8 +27,12 @@ class DetectorCLI(LightningCLI):
         parser.link_arguments("data.num_classes", "model.num_classes")
 
 
-def run_cli(args: Sequence[str] | None = None, run: bool = True) -> DetectorCLI:
+def run_cli(args: Sequence[str] | None = None, run: bool = True, prog: str | None = None
+            ) -> DetectorCLI:
     """Parse ``args`` (default: ``sys.argv``) and run the chosen Lightning subcommand."""
+    # ``lunarnav train`` passes its own arguments on purpose; Lightning warns about that.
+    warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
     return DetectorCLI(DetectorModule, DetectionDataModule, args=list(args) if args is not None
                        else None, run=run, seed_everything_default=0,
-                       save_config_kwargs={"overwrite": True})
+                       save_config_kwargs={"overwrite": True},
+                       parser_kwargs={"prog": prog} if prog else None)
