@@ -20,6 +20,7 @@ STAGE_CLI_MODULES = (
     "lunarnav_ml.synth.cli",  # lunarnav synth
     "lunarnav_ml.training.cli",  # lunarnav train, lunarnav detect
     "lunarnav_ml.eval.cli",  # lunarnav eval
+    "lunarnav_ml.realdata.cli",  # lunarnav import-real
     "lunarnav_ml.export.cli",  # lunarnav export, lunarnav bench
     "lunarnav_ml.demo",  # lunarnav demo
 )

@@ -6,6 +6,8 @@ Tasks:
 - ``geometry``: 3D crater center and diameter errors (3-sigma tables) on a stereo set.
 - ``baselines-lidar`` / ``baselines-stereo``: the paper's geometric detectors on the
   paper-lidar / paper-stereo protocol sets, beside the paper's tables.
+- ``transfer``: real labelled frames (``lunarnav import-real`` output): recall at 1/3/5/10
+  detections per image and AP50 per class, per camera, and an overlay gallery.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from typing import Any
 
 from lunarnav_ml.errors import InputError
 
-TASKS = ("detection", "geometry", "baselines-lidar", "baselines-stereo")
+TASKS = ("detection", "geometry", "baselines-lidar", "baselines-stereo", "transfer")
 
 
 def load_json(path: Path, what: str) -> Any:
@@ -107,7 +109,47 @@ def run_baselines(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_transfer(args: argparse.Namespace) -> int:
+    """The real-data transfer report of ``lunarnav eval --task transfer``."""
+    from lunarnav_ml.data.coco import load_coco, read_json
+    from lunarnav_ml.eval.predict import predict_coco
+    from lunarnav_ml.realdata.transfer import write_transfer_report
+    from lunarnav_ml.utils import atomic
+
+    sources = {k: v for k, v in (("--checkpoint", args.checkpoint), ("--onnx", args.onnx),
+                                 ("--model", args.model), ("--test-results", args.test_results))
+               if v is not None}
+    if len(sources) != 1:
+        raise InputError("eval --task transfer: give exactly one of --checkpoint, --onnx, "
+                         f"--model or --test-results (got {', '.join(sources) or 'none'})")
+    gt_path = Path(args.test_gt)
+    load_coco(gt_path)  # validates the labels and that every image file exists
+    gt = read_json(gt_path)
+    if args.test_results is not None:
+        results = load_json(args.test_results, "detections")
+    else:
+        if args.onnx is not None:
+            from lunarnav_ml.runtime import OnnxDetector
+
+            predictor = OnnxDetector(args.onnx, threads=args.threads)
+        else:
+            predictor = load_predictor(args.checkpoint or args.model, args.threads)
+        results = predict_coco(predictor, gt, gt_path.parent, desc="transfer",
+                               progress=not args.no_progress)
+    with atomic.atomic_dir(args.out) as work:
+        atomic.write_json(work / "detections.json", results, indent=None)
+        metrics = write_transfer_report(gt, results, gt_path.parent, work,
+                                        f"Transfer report: {args.test_gt}",
+                                        gallery_images=args.overlays)
+    crater, k = metrics["all"]["per_class"]["crater"], metrics["budgets"][-1]
+    print(f"crater recall@{k} {crater[f'recall@{k}']}  AP50 (lower bound) {crater['AP50']}  "
+          f"-> {args.out}")
+    return 0
+
+
 def _dispatch(args: argparse.Namespace) -> int:
+    if args.task == "transfer":
+        return run_transfer(args)
     if args.task == "geometry":
         return run_geometry(args)
     if args.task.startswith("baselines-"):
@@ -125,6 +167,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="COCO annotations of the evaluated split")
     p.add_argument("--test-results", type=Path, help="COCO results JSON for the evaluated split")
     p.add_argument("--model", type=Path, help="checkpoint (.ckpt/.pt) or ONNX file to run")
+    p.add_argument("--checkpoint", type=Path, help="(transfer) checkpoint (.ckpt/.pt) to run")
+    p.add_argument("--onnx", type=Path, help="(transfer) ONNX file to run (torch-free runtime)")
     p.add_argument("--val-gt", type=Path, help="validation annotations (operating threshold)")
     p.add_argument("--val-results", type=Path, help="COCO results JSON for the validation split")
     p.add_argument("--threshold", type=float, help="operating threshold, instead of --val-gt")
