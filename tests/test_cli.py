@@ -47,3 +47,20 @@ def test_corrupt_json_names_the_file(tmp_path):
         capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 2 and "bad.json" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_eval_detection_report_from_results(tiny_coco, tmp_path):
+    import json
+
+    gt_path = tiny_coco["val"]
+    gt = json.loads(gt_path.read_text())
+    results = [{"image_id": a["image_id"], "category_id": a["category_id"], "bbox": a["bbox"],
+                "score": 0.9} for a in gt["annotations"] if not a.get("ignore")]
+    res_path = tmp_path / "res.json"
+    res_path.write_text(json.dumps(results))
+    out = tmp_path / "report"
+    code = main(["eval", "--gt", str(gt_path), "--test-results", str(res_path),
+                 "--threshold", "0.5", "--out", str(out), "--overlays", "2", "--no-progress"])
+    assert code == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["coco"]["per_class"]["crater"]["AP50"] > 0.99

@@ -46,11 +46,12 @@ def load_predictor(path: Path, threads: int) -> Any:
 
 def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]]:
     """Ground truth and detections of one split, from a results file or by running the model."""
-    from lunarnav_ml.data.coco import load_coco
+    from lunarnav_ml.data.coco import load_coco, read_json
     from lunarnav_ml.eval.predict import predict_coco
 
     gt_path = Path(getattr(args, f"{split}_gt"))
-    gt = load_coco(gt_path).dataset
+    load_coco(gt_path)  # validates the labels and that every image file exists
+    gt = read_json(gt_path)
     results_path = getattr(args, f"{split}_results")
     if results_path is not None:
         return gt, load_json(results_path, "detections")
