@@ -22,6 +22,9 @@ import numpy as np
 from lunarnav_ml.errors import ConfigError
 from lunarnav_ml.utils import atomic
 
+# The demo's scene distribution (fresh craters under a low side sun, see the file's header).
+DEMO_SYNTH_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "synth" / "demo.yaml"
+
 
 @dataclass
 class DemoConfig:
@@ -37,6 +40,7 @@ class DemoConfig:
     batch_size: int = 16
     max_fa_per_image: float = 0.2  # false-alarm budget for the operating threshold
     n_overlays: int = 8  # overlay images written
+    synth_config: str = str(DEMO_SYNTH_CONFIG)  # scene distribution of all three splits
 
     def validate(self) -> None:
         """Reject impossible sizes with a message naming the field."""
@@ -81,12 +85,16 @@ def peak_rss_gib() -> float:
 
 def render_splits(cfg: DemoConfig, data_dir: Path, progress: bool) -> dict[str, Path]:
     """Render train / val / test with disjoint seeds; returns annotation paths."""
-    from lunarnav_ml.synth import generate_dataset
+    from lunarnav_ml.synth import SynthConfig, generate_dataset
 
+    if not Path(cfg.synth_config).is_file():
+        raise ConfigError(f"demo: synth config not found: {cfg.synth_config}")
+    scenes = SynthConfig.from_yaml(cfg.synth_config)
     sizes = {"train": cfg.n_train, "val": cfg.n_val, "test": cfg.n_test}
     return {
         split: generate_dataset(data_dir / split, n_images=n, seed=_split_seed(cfg.seed, i),
-                                image_size=cfg.image_size, stereo=True, progress=progress)
+                                config=scenes, image_size=cfg.image_size, stereo=True,
+                                progress=progress)
         for i, (split, n) in enumerate(sizes.items())
     }
 
@@ -179,6 +187,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", default=d.preset)
     p.add_argument("--train-minutes", type=float, default=d.train_minutes)
     p.add_argument("--batch-size", type=int, default=d.batch_size)
+    p.add_argument("--synth-config", default=d.synth_config,
+                   help="scene distribution (synth YAML) of the rendered splits")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
 
@@ -186,6 +196,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     cfg = DemoConfig(seed=args.seed, n_train=args.n_train, n_val=args.n_val, n_test=args.n_test,
                      image_size=args.image_size, preset=args.preset,
-                     train_minutes=args.train_minutes, batch_size=args.batch_size)
+                     train_minutes=args.train_minutes, batch_size=args.batch_size,
+                     synth_config=args.synth_config)
     run_demo(cfg, args.out, progress=not args.no_progress)
     return 0

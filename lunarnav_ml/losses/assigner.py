@@ -44,7 +44,8 @@ def flatten_targets(targets: list[dict[str, torch.Tensor]], device: torch.device
 
 
 def assign(gt: torch.Tensor, anchors: torch.Tensor, strides: tuple[int, ...],
-           grid_shapes: list[tuple[int, int]], iou_thresh: float) -> list[LevelTargets]:
+           grid_shapes: list[tuple[int, int]], iou_thresh: float,
+           neighbors: tuple[bool, ...] | None = None) -> list[LevelTargets]:
     """Assign each ground-truth box to anchors across all scales (YOLOv4 ``iou_thresh``).
 
     Args:
@@ -53,9 +54,14 @@ def assign(gt: torch.Tensor, anchors: torch.Tensor, strides: tuple[int, ...],
         strides: pixels per cell of each scale.
         grid_shapes: (H, W) cells of each scale.
         iou_thresh: shape-IoU above which an anchor is also a positive (YOLOv4: 0.213).
+        neighbors: per scale, whether the two cells next to the centre cell nearest the centre
+            (one in x, one in y) are positives too (YOLOv5's assignment: three times the
+            positives, faster convergence). Their predictions must reach the centre, so this
+            needs a grid-sensitivity factor ``scale_xy >= 2`` at that scale.
 
     Returns:
-        One :class:`LevelTargets` per scale; a box sits in the cell holding its centre.
+        One :class:`LevelTargets` per scale; a box sits in the cell holding its centre (and,
+        with ``neighbors``, in two adjacent cells).
     """
     num_levels, num_anchors = anchors.shape[:2]
     ious = wh_iou(gt[:, 4:6], anchors.reshape(-1, 2))  # (M, L * A)
@@ -67,7 +73,17 @@ def assign(gt: torch.Tensor, anchors: torch.Tensor, strides: tuple[int, ...],
         m, a = positive[:, level * num_anchors:(level + 1) * num_anchors].nonzero(as_tuple=True)
         h, w = grid_shapes[level]
         rows = gt[m]
-        gx = (rows[:, 2] / strides[level]).long().clamp(0, w - 1)
-        gy = (rows[:, 3] / strides[level]).long().clamp(0, h - 1)
+        xy = rows[:, 2:4] / strides[level]
+        gx = xy[:, 0].long().clamp(0, w - 1)
+        gy = xy[:, 1].long().clamp(0, h - 1)
+        if neighbors is not None and neighbors[level]:
+            frac = xy - xy.floor()
+            step_x = torch.where(frac[:, 0] < 0.5, -1, 1)
+            step_y = torch.where(frac[:, 1] < 0.5, -1, 1)
+            nx, ny = gx + step_x, gy + step_y
+            in_x, in_y = (nx >= 0) & (nx < w), (ny >= 0) & (ny < h)
+            a = torch.cat([a, a[in_x], a[in_y]])
+            rows = torch.cat([rows, rows[in_x], rows[in_y]])
+            gx, gy = torch.cat([gx, nx[in_x], gx[in_y]]), torch.cat([gy, gy[in_x], ny[in_y]])
         out.append(LevelTargets(rows[:, 0].long(), a, gy, gx, rows[:, 2:6], rows[:, 1].long()))
     return out

@@ -63,7 +63,8 @@ class YOLOLoss(nn.Module):
         raw = [x.float() for x in raw]  # under AMP the head maps are float16
         gt, ign = flatten_targets(targets, raw[0].device)
         grids = [(x.shape[2], x.shape[3]) for x in raw]
-        assigned = assign(gt, anchors, tuple(strides), grids, self.anchor_iou_thresh)
+        neighbors = tuple(s >= 2.0 for s in scale_xy)  # reachable neighbour cells are positives
+        assigned = assign(gt, anchors, tuple(strides), grids, self.anchor_iou_thresh, neighbors)
         balance = LEVEL_BALANCE.get(len(raw), (1.0,) * len(raw))
         zero = raw[0].sum() * 0.0
         box, obj, cls = zero, zero, zero

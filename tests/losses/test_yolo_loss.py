@@ -45,6 +45,19 @@ def test_assign_best_anchor_always_and_extra_above_threshold():
     assert sum(len(lv.batch) for lv in loose) > 1  # several anchors per ground truth
 
 
+def test_assign_neighbour_cells_nearest_the_centre():
+    # centre (20, 21) at stride 8: cell (2, 2), fractions 0.5 / 0.625 -> right and lower cells
+    gt = torch.tensor([[0, 0, 20.0, 21.0, 12.0, 16.0], [0, 0, 1.0, 1.0, 12.0, 16.0]])
+    anchors = _model().anchors
+    lv = assign(gt, anchors, (8, 16, 32), [(8, 8), (4, 4), (2, 2)], iou_thresh=0.7,
+                neighbors=(True, False, False))[0]
+    cells = sorted(zip(lv.gx.tolist(), lv.gy.tolist()))
+    # the box at (1, 1) sits in the corner cell; its left and upper neighbours are off the grid
+    assert cells == [(0, 0), (2, 2), (2, 3), (3, 2)]
+    near = lv.gx > 0
+    assert (lv.boxes[near, :2] == torch.tensor([20.0, 21.0])).all()  # all regress the same box
+
+
 def test_flatten_separates_ignore_regions():
     gt, ign = flatten_targets(_targets(), torch.device("cpu"))
     assert gt.shape == (2, 6) and ign.shape == (1, 5)
