@@ -34,10 +34,10 @@ class DemoConfig:
     n_train: int = 320  # training images
     n_val: int = 48  # validation images (operating threshold, best checkpoint)
     n_test: int = 64  # held-out test images (reported figures)
-    image_size: int = 384  # rendered image side, px
+    image_size: int = 320  # rendered image side = training input side, px
     preset: str = "nano"  # detector size preset
-    train_minutes: float = 7.0  # wall-clock training budget
-    batch_size: int = 16
+    train_minutes: float = 9.0  # wall-clock training budget
+    batch_size: int = 8  # small batches: more optimizer steps in the budget
     max_fa_per_image: float = 0.2  # false-alarm budget for the operating threshold
     n_overlays: int = 8  # overlay images written
     synth_config: str = str(DEMO_SYNTH_CONFIG)  # scene distribution of all three splits

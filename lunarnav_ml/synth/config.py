@@ -56,7 +56,9 @@ class CraterConfig:
     depth_ratio_fresh: float = _f(0.2, 0.01, 0.5, "depth/diameter of a fresh crater (Pike 1977)")
     depth_ratio_degraded: Range = _f((0.06, 0.15), 0.01, 0.5, "depth/diameter, degraded")
     rim_ratio_fresh: float = _f(0.04, 0.0, 0.2, "rim height / D of a fresh crater")
-    near_camera_boost: Range = _f((2, 5), 0, 50, "extra craters of 2-20 m placed 4-35 m ahead")
+    near_camera_boost: Range = _f((2, 5), 0, 50, "extra craters of 2-20 m placed ahead")
+    near_camera_range_m: Range = _f((4.0, 35.0), 0.5, 500.0,
+                                    "near-rim distance of the extra craters (uniform), m")
 
 
 @dataclass

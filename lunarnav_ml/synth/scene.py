@@ -149,7 +149,7 @@ def _crater_population(ts: TerrainSpec, cfg: SynthConfig, rng: np.random.Generat
     xy = rng.uniform(0, ter.period, (diam.size, 2)) + ter.x0
     if ts.n_boost:
         d_b = np.exp(rng.uniform(np.log(2.0), np.log(min(20.0, cc.max_diameter_m)), ts.n_boost))
-        xy_b = _ahead(rng, ts, ts.n_boost, 4.0, 35.0, 40.0, d_b / 2)
+        xy_b = _ahead(rng, ts, ts.n_boost, *cc.near_camera_range_m, 40.0, d_b / 2)
         diam, xy = np.concatenate([diam, d_b]), np.concatenate([xy, xy_b])
     out = []
     for d, (x, y) in zip(diam, xy):
