@@ -36,7 +36,7 @@ class DemoConfig:
     n_test: int = 64  # held-out test images (reported figures)
     image_size: int = 320  # rendered image side = training input side, px
     preset: str = "nano"  # detector size preset
-    train_minutes: float = 9.0  # wall-clock training budget
+    train_minutes: float = 11.0  # wall-clock training budget
     batch_size: int = 8  # small batches: more optimizer steps in the budget
     max_fa_per_image: float = 0.2  # false-alarm budget for the operating threshold
     n_overlays: int = 8  # overlay images written
@@ -84,7 +84,9 @@ def peak_rss_gib() -> float:
 
 
 def render_splits(cfg: DemoConfig, data_dir: Path, progress: bool) -> dict[str, Path]:
-    """Render train / val / test with disjoint seeds; returns annotation paths."""
+    """Render train / val / test with disjoint seeds; returns annotation paths. Validation and
+    test are stereo pairs (right image, depth, disparity) for the 3D stages; the detector
+    trains on left images, so the training split is rendered without the right view."""
     from lunarnav_ml.synth import SynthConfig, generate_dataset
 
     if not Path(cfg.synth_config).is_file():
@@ -93,7 +95,8 @@ def render_splits(cfg: DemoConfig, data_dir: Path, progress: bool) -> dict[str, 
     sizes = {"train": cfg.n_train, "val": cfg.n_val, "test": cfg.n_test}
     return {
         split: generate_dataset(data_dir / split, n_images=n, seed=_split_seed(cfg.seed, i),
-                                config=scenes, image_size=cfg.image_size, stereo=True,
+                                config=scenes, image_size=cfg.image_size,
+                                stereo=split != "train",  # the detector trains on left images
                                 progress=progress)
         for i, (split, n) in enumerate(sizes.items())
     }
@@ -142,7 +145,7 @@ def _run_in(cfg: DemoConfig, work: Path, progress: bool) -> dict[str, Any]:
     clock.lap("report")
     metrics["run"] = {"config": asdict(cfg), "stage_seconds": clock.stages,
                       "wall_seconds": clock.total, "peak_rss_gib": peak_rss_gib(),
-                      "checkpoint": str(Path(ckpt).relative_to(work)), "onnx": "model.onnx"}
+                      "checkpoint": str(Path(ckpt).resolve().relative_to(work.resolve())), "onnx": "model.onnx"}
     write_report(metrics, work, "lunarnav demo: synthetic held-out test split (onnxruntime)")
     _print_summary(metrics)
     return metrics

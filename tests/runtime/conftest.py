@@ -1,33 +1,3 @@
-"""Fixtures: a small untrained nano detector (BatchNorm statistics set on noise) and its ONNX
-exports at 128 px. tests/runtime/conftest.py is the same file: the exports are cached under
-pytest's base temp folder, so both folders share one copy per session."""
+"""ONNX fixtures shared with tests/export (tests/onnx_fixtures.py)."""
 
-import pytest
-
-from lunarnav_ml.export.bench import random_detector
-from lunarnav_ml.export.onnx_export import export_onnx
-
-
-@pytest.fixture(scope="session")
-def parts():
-    return random_detector("nano", img_size=128, seed=0)
-
-
-def _cached_export(parts, tmp_path_factory, name, **kwargs):
-    path = tmp_path_factory.getbasetemp() / "lunarnav_onnx" / name
-    return path if path.is_file() else export_onnx(parts, path, **kwargs)
-
-
-@pytest.fixture(scope="session")
-def onnx_path(parts, tmp_path_factory):
-    return _cached_export(parts, tmp_path_factory, "nano.onnx")
-
-
-@pytest.fixture(scope="session")
-def onnx_nms_path(parts, tmp_path_factory):
-    return _cached_export(parts, tmp_path_factory, "nano_nms.onnx", nms=True)
-
-
-@pytest.fixture(scope="session")
-def onnx_static_path(parts, tmp_path_factory):
-    return _cached_export(parts, tmp_path_factory, "nano_static.onnx", dynamic=False)
+from tests.onnx_fixtures import onnx_nms_path, onnx_path, onnx_static_path, parts  # noqa: F401
