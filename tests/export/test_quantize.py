@@ -8,7 +8,8 @@ import onnx
 import pytest
 
 from lunarnav_ml.errors import ConfigError, InputError
-from lunarnav_ml.export.bench import synthetic_frame
+from lunarnav_ml.export.bench import random_detector, synthetic_frame
+from lunarnav_ml.export.onnx_export import export_onnx
 from lunarnav_ml.export.quantize import (
     fp32_tail_nodes,
     load_calibration_images,
@@ -34,11 +35,14 @@ def test_tail_is_decode_and_last_head_convs(onnx_path):
     assert not any("backbone" in name for name in tail)
 
 
-def test_mish_islands_found(onnx_path):
-    graph = onnx.load(onnx_path).graph
+def test_mish_islands_found(onnx_path, tmp_path):
+    assert not mish_nodes(onnx.load(onnx_path).graph)  # nano is leaky ReLU throughout
+    small = export_onnx(random_detector("small", img_size=64, seed=0), tmp_path / "s.onnx",
+                        img_size=64)
+    graph = onnx.load(small).graph
     names = set(mish_nodes(graph))
     exps = [n for n in graph.node if n.op_type == "Exp" and n.name in names]
-    assert len(exps) == 44  # nano: every backbone activation
+    assert len(exps) == 44  # small: every backbone activation
     assert {n.op_type for n in graph.node if n.name in names} == {
         "Constant", "Clip", "Exp", "Add", "Mul", "Div"}
     assert not names & set(fp32_tail_nodes(graph))
@@ -62,7 +66,8 @@ def test_int8_outputs_track_fp32(onnx_path, int8_path):
     batch, _ = fp32.preprocess(images)
     a, b = fp32.forward(batch), int8.forward(batch)
     assert not np.array_equal(a, b)  # it was quantized
-    assert np.median(np.abs(a[..., :2] - b[..., :2])) < 1.0  # box centres, px
+    # box centres, px (nano's grid sensitivity 2 doubles their response to logit error)
+    assert np.median(np.abs(a[..., :2] - b[..., :2])) < 2.0
     logit = lambda p: np.log(p / (1 - p)).ravel()
     assert np.corrcoef(logit(a[..., 4]), logit(b[..., 4]))[0, 1] > 0.8
 
