@@ -24,17 +24,21 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
+import cv2
+import numpy as np
 
 cv2.setNumThreads(1)
 
-from lunarnav_ml.baselines.analytic import (  # noqa: E402
-    AnalyticScene, CraterSpec, render_disparity, simulate_lidar)
-from lunarnav_ml.baselines.crater_model import CraterProfile  # noqa: E402
-from lunarnav_ml.baselines.lidar import MapCrater, detect_craters_lidar  # noqa: E402
-from lunarnav_ml.baselines.report import baseline_report  # noqa: E402
-from lunarnav_ml.baselines.stereo import detect_craters_stereo  # noqa: E402
+from lunarnav_ml.baselines.analytic import (
+    AnalyticScene,
+    CraterSpec,
+    render_disparity,
+    simulate_lidar,
+)
+from lunarnav_ml.baselines.crater_model import CraterProfile
+from lunarnav_ml.baselines.lidar import MapCrater, detect_craters_lidar
+from lunarnav_ml.baselines.report import baseline_report
+from lunarnav_ml.baselines.stereo import detect_craters_stereo
 
 TARGETS = {"lidar": "3 sigma <= 0.28/1.04/1.77/1.94 m (D 5/10/15/20); Pd >= 0.9 to 20 m; "
                     "<= 1 s per scan",
@@ -60,7 +64,7 @@ def time_detectors(repeats: int = 5) -> dict[str, float]:
             fn()
             secs.append(time.perf_counter() - t0)
         out[name] = float(np.median(secs))
-    out["lidar_points"] = int(len(scan))
+    out["lidar_points"] = len(scan)
     return out
 
 

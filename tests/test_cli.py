@@ -12,7 +12,7 @@ SUBCOMMANDS = ("synth", "train", "eval", "export", "detect", "demo")
 
 def test_every_subcommand_is_registered():
     parser = build_parser()
-    choices = parser._subparsers._group_actions[0].choices  # noqa: SLF001
+    choices = parser._subparsers._group_actions[0].choices
     for name in SUBCOMMANDS:
         assert name in choices
 

@@ -8,10 +8,10 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from lunarnav_ml.utils import atomic  # noqa: E402
+from lunarnav_ml.utils import atomic
 
 PD_GOAL = 0.5  # the paper's KPP: Pd 0.5 for 5 m craters at 15 m
 

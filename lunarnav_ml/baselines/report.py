@@ -91,11 +91,11 @@ def baseline_report(
     craters = _craters_by_image(gt)
     if method == "lidar":
         cfg = lidar_config or LidarConfig()
-        run: Callable = lambda img, crs, rng: _run_lidar(  # noqa: E731
+        run: Callable = lambda img, crs, rng: _run_lidar(
             ann_path.parent, img, crs, rng, cfg, prior_sigma_m, map_min_diameter_m)
     else:
         scfg = stereo_config or StereoConfig()
-        run = lambda img, crs, rng: _run_stereo(  # noqa: E731
+        run = lambda img, crs, rng: _run_stereo(
             ann_path.parent, img, rng, scfg, disparity, noise_px)
     records, timings, false_alarms = [], [], 0
     for img, dets, secs in _iterate(images, craters, run, seed, progress):

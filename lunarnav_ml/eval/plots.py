@@ -9,11 +9,11 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
-import cv2  # noqa: E402
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import cv2
+import matplotlib.pyplot as plt
+import numpy as np
 
-from lunarnav_ml.utils import atomic  # noqa: E402
+from lunarnav_ml.utils import atomic
 
 # BGR colours per category id: crater, rock, artifact.
 CLASS_COLORS = {1: (60, 60, 255), 2: (255, 160, 40), 3: (40, 220, 255)}

@@ -23,7 +23,6 @@ import scipy.optimize
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.geometry._checks import as_array, as_image, as_points
 
-
 _MAX_CROP_PX = 120_000  # upsampled crops stay under this many pixels (time per crater)
 
 

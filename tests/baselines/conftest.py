@@ -3,7 +3,12 @@
 import numpy as np
 import pytest
 
-from lunarnav_ml.baselines.analytic import AnalyticScene, CraterSpec, render_disparity, simulate_lidar
+from lunarnav_ml.baselines.analytic import (
+    AnalyticScene,
+    CraterSpec,
+    render_disparity,
+    simulate_lidar,
+)
 from lunarnav_ml.baselines.crater_model import CraterProfile
 
 CRATER_D = 10.0

@@ -4,9 +4,9 @@ inputs that must give no detection (empty, NaN, flat) and those that must raise.
 import numpy as np
 import pytest
 
-from tests.baselines.conftest import CRATER_D, CRATER_XY, PROFILE
 from lunarnav_ml.baselines import lidar as L
 from lunarnav_ml.errors import InputError
+from tests.baselines.conftest import CRATER_D, CRATER_XY, PROFILE
 
 SENSOR = np.array([0.0, 0.0, 1.5])
 CENTER = np.array(CRATER_XY)

@@ -4,10 +4,10 @@ inputs that must give no detection (all-invalid, flat) and those that must raise
 import numpy as np
 import pytest
 
-from tests.baselines.conftest import CAMERA, CRATER_D, CRATER_XY, disparity_of
 from lunarnav_ml.baselines import stereo as S
 from lunarnav_ml.baselines.analytic import AnalyticScene
 from lunarnav_ml.errors import InputError
+from tests.baselines.conftest import CAMERA, CRATER_D, CRATER_XY, disparity_of
 
 CENTER = np.array(CRATER_XY)
 

@@ -3,12 +3,8 @@
 from __future__ import annotations
 
 import functools
-import sys
-from pathlib import Path
 
 import pytest
-
-
 
 from tests.geometry.geometry_scene import Scene, render_crater_scene
 

@@ -1,15 +1,11 @@
 """Stereo crater stage: box -> rim ellipse -> 3D center on a ray-cast scene with known truth."""
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.runtime import OnnxDetector, StereoCraterLocalizer
-
-
 from tests.geometry.geometry_scene import render_crater_scene
 
 
