@@ -139,6 +139,7 @@ def fit_detector(train_ann: str | Path | list, val_ann: str | Path, out_dir: str
                  freeze_backbone: bool = False, resume: bool = False,
                  accelerator: str = "cpu", devices: int | str = 1,
                  checkpoint_every_n_steps: int = 50, val_every_n_epochs: int = 1,
+                 log_every_n_steps: int = 10,
                  **module_kwargs: Any) -> Path:
     """Train a detector on COCO data within a wall-clock budget; return the best checkpoint.
 
@@ -156,6 +157,7 @@ def fit_detector(train_ann: str | Path | list, val_ann: str | Path, out_dir: str
         mosaic_prob: 4-image mosaic probability; lr: peak learning rate.
         init_from: checkpoint to fine-tune from; freeze_backbone: train neck and head only.
         val_every_n_epochs: validate (COCO mAP, best checkpoint) every n training epochs.
+        log_every_n_steps: how often training losses go to the CSV / TensorBoard logs.
         module_kwargs: further :class:`DetectorModule` arguments.
 
     Returns:
@@ -179,7 +181,7 @@ def fit_detector(train_ann: str | Path | list, val_ann: str | Path, out_dir: str
         default_root_dir=out_dir, accelerator=accelerator, devices=devices,
         max_epochs=max_epochs, max_time=timedelta(minutes=max_minutes), callbacks=callbacks,
         logger=build_loggers(out_dir), enable_progress_bar=progress, num_sanity_val_steps=0,
-        log_every_n_steps=10, enable_model_summary=progress,
+        log_every_n_steps=log_every_n_steps, enable_model_summary=progress,
         check_val_every_n_epoch=val_every_n_epochs,
     )
     last = out_dir / "checkpoints" / "last.ckpt"
