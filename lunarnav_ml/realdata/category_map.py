@@ -17,10 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from lunarnav_ml.data.coco import CLASS_NAMES
 from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.utils.yamlfile import read_yaml
 
 # Built-in default; configs/realdata/category_map.yaml holds the same (a test checks it).
 DEFAULT_MAPPING: dict[str, str | None] = {
@@ -84,12 +83,7 @@ def load_category_map(path: str | Path | None = None) -> CategoryMap:
     if path is None:
         return CategoryMap()
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: category map file not found")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML ({err})") from err
+    data = read_yaml(path, "category map file")
     if not isinstance(data, dict) or not isinstance(data.get("map"), dict):
         raise ConfigError(f"{path}: expected a mapping with a 'map' table of name -> category")
     unknown = sorted(set(data) - set(_KEYS))

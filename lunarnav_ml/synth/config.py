@@ -214,16 +214,9 @@ class SynthConfig:
     @classmethod
     def from_yaml(cls, path: str | Path) -> SynthConfig:
         """Load a YAML file; errors name the file and the dotted key."""
-        import yaml
+        from lunarnav_ml.utils.yamlfile import read_yaml
 
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"{path}: synth config file not found")
-        try:
-            data = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as err:
-            raise ConfigError(f"{path}: not valid YAML ({err})") from None
-        return cls.from_dict(data, source=str(path))
+        return cls.from_dict(read_yaml(path, "synth config file"), source=str(path))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (tuples as lists), the inverse of :meth:`from_dict`."""
