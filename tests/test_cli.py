@@ -64,3 +64,12 @@ def test_eval_detection_report_from_results(tiny_coco, tmp_path):
     assert code == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["coco"]["per_class"]["crater"]["AP50"] > 0.99
+
+
+def test_demo_bad_settings_are_one_line_and_leave_nothing(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--synth-config", str(tmp_path / "nope.yaml")]) == 2
+    assert main(["demo", "--out", str(out), "--image-size", "100"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "nope.yaml" in err[0] and "multiple of 32" in err[1]
+    assert not out.exists()
