@@ -87,9 +87,7 @@ def render_splits(cfg: DemoConfig, data_dir: Path, progress: bool) -> dict[str, 
     trains on left images, so the training split is rendered without the right view."""
     from lunarnav_ml.synth import SynthConfig, generate_dataset
 
-    if not Path(cfg.synth_config).is_file():
-        raise ConfigError(f"demo: synth config not found: {cfg.synth_config}")
-    scenes = SynthConfig.from_yaml(cfg.synth_config)
+    scenes = SynthConfig.from_yaml(cfg.synth_config)  # ConfigError naming a missing file
     sizes = {"train": cfg.n_train, "val": cfg.n_val, "test": cfg.n_test}
     return {
         split: generate_dataset(data_dir / split, n_images=n, seed=_split_seed(cfg.seed, i),
@@ -144,7 +142,8 @@ def _run_in(cfg: DemoConfig, work: Path, progress: bool) -> dict[str, Any]:
     clock.lap("report")
     metrics["run"] = {"config": asdict(cfg), "stage_seconds": clock.stages,
                       "wall_seconds": clock.total, "peak_rss_gib": peak_rss_gib(),
-                      "checkpoint": str(Path(ckpt).resolve().relative_to(work.resolve())), "onnx": "model.onnx"}
+                      "checkpoint": str(Path(ckpt).resolve().relative_to(work.resolve())),
+                      "onnx": "model.onnx"}
     write_report(metrics, work, "lunarnav demo: synthetic held-out test split (onnxruntime)")
     _print_summary(metrics)
     return metrics

@@ -63,6 +63,13 @@ def load_coco(path: Path | str, num_classes: int = 3, check_files: bool = True
     Returns:
         One record per image, in file order.
     """
+    return read_coco(path, num_classes, check_files)[1]
+
+
+def read_coco(path: Path | str, num_classes: int = 3, check_files: bool = True
+              ) -> tuple[dict[str, Any], list[ImageRecord]]:
+    """Read a COCO detection file once: the raw dict and its validated per-image records
+    (arguments and errors as :func:`load_coco`)."""
     path = Path(path)
     data = read_json(path)
     if not data["images"]:
@@ -73,7 +80,7 @@ def load_coco(path: Path | str, num_classes: int = 3, check_files: bool = True
     for k, ann in enumerate(data["annotations"]):
         image_id, box, cat, ignore = _annotation(path, k, ann, images, cat_ids)
         per_image[image_id].append((box, cat, ignore))
-    return [_record(images[i], per_image[i]) for i in images]
+    return data, [_record(images[i], per_image[i]) for i in images]
 
 
 def _category_ids(path: Path, categories: list[dict], num_classes: int) -> set[int]:

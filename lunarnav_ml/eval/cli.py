@@ -46,12 +46,11 @@ def load_predictor(path: Path, threads: int) -> Any:
 
 def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]]:
     """Ground truth and detections of one split, from a results file or by running the model."""
-    from lunarnav_ml.data.coco import load_coco, read_json
+    from lunarnav_ml.data.coco import read_coco
     from lunarnav_ml.eval.predict import predict_coco
 
     gt_path = Path(getattr(args, f"{split}_gt"))
-    load_coco(gt_path)  # validates the labels and that every image file exists
-    gt = read_json(gt_path)
+    gt, _ = read_coco(gt_path)  # validated labels, every image file present
     results_path = getattr(args, f"{split}_results")
     if results_path is not None:
         return gt, load_json(results_path, "detections")
@@ -112,7 +111,7 @@ def run_baselines(args: argparse.Namespace) -> int:
 
 def run_transfer(args: argparse.Namespace) -> int:
     """The real-data transfer report of ``lunarnav eval --task transfer``."""
-    from lunarnav_ml.data.coco import load_coco, read_json
+    from lunarnav_ml.data.coco import read_coco
     from lunarnav_ml.eval.predict import predict_coco
     from lunarnav_ml.realdata.transfer import write_transfer_report
     from lunarnav_ml.utils import atomic
@@ -124,17 +123,11 @@ def run_transfer(args: argparse.Namespace) -> int:
         raise InputError("eval --task transfer: give exactly one of --checkpoint, --onnx, "
                          f"--model or --test-results (got {', '.join(sources) or 'none'})")
     gt_path = Path(args.test_gt)
-    load_coco(gt_path)  # validates the labels and that every image file exists
-    gt = read_json(gt_path)
+    gt, _ = read_coco(gt_path)  # validated labels, every image file present
     if args.test_results is not None:
         results = load_json(args.test_results, "detections")
-    else:
-        if args.onnx is not None:
-            from lunarnav_ml.runtime import OnnxDetector
-
-            predictor = OnnxDetector(args.onnx, threads=args.threads)
-        else:
-            predictor = load_predictor(args.checkpoint or args.model, args.threads)
+    else:  # load_predictor runs .onnx files through onnxruntime, checkpoints through torch
+        predictor = load_predictor(args.onnx or args.checkpoint or args.model, args.threads)
         results = predict_coco(predictor, gt, gt_path.parent, desc="transfer",
                                progress=not args.no_progress)
     with atomic.atomic_dir(args.out) as work:

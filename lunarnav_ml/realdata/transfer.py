@@ -27,6 +27,7 @@ from pycocotools.cocoeval import COCOeval
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.coco_metrics import check_results, coco_ap, coco_from_dict
 from lunarnav_ml.eval.plots import draw_overlay
+from lunarnav_ml.eval.predict import read_rgb
 from lunarnav_ml.realdata.sources import UNKNOWN_CAMERA
 from lunarnav_ml.utils import atomic
 
@@ -182,19 +183,13 @@ def draw_gallery(gt: dict[str, Any], results: list[dict[str, Any]], root: Path, 
     for img in images:
         anns = [a for a in gt["annotations"] if a["image_id"] == img["id"]]
         top = sorted(dets[img["id"]], key=lambda d: -d["score"])[:top_k]
-        overlay = draw_overlay(_read_bgr(Path(root) / img["file_name"]), anns, top, names)
+        bgr = cv2.cvtColor(read_rgb(Path(root) / img["file_name"]), cv2.COLOR_RGB2BGR)
+        overlay = draw_overlay(bgr, anns, top, names)
         caption = f"{img.get('camera_name', UNKNOWN_CAMERA)}  {img.get('source_name', '')}"
         tiles.append(_tile(overlay, tile, caption[:48]))
     tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % cols)
     rows = [np.hstack(tiles[i:i + cols]) for i in range(0, len(tiles), cols)]
     return atomic.write_image(path, np.vstack(rows))
-
-
-def _read_bgr(path: Path) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise InputError(f"{path}: image file missing or unreadable")
-    return image
 
 
 def _tile(image: np.ndarray, side: int, caption: str) -> np.ndarray:
