@@ -127,23 +127,30 @@ def _stamp(h, x0, y0, res, xc, yc, radius, table, r_max):
     h_ref = h[i0 % n, j0 % n]
     reach = int(math.ceil(r_max * radius / res)) + 1  # noqa: RUF046 (numba)
     m = table.shape[0] - 1
+    scale = res / radius  # grid steps -> radii
+    to_table = m / r_max
+    r2_max = r_max * r_max
     for i in range(i0 - reach, i0 + reach + 2):
-        dx = (i - gx) * res
+        dx = (i - gx) * scale
+        ii = i % n
+        jj = (j0 - reach) % n
         for j in range(j0 - reach, j0 + reach + 2):
-            dy = (j - gy) * res
-            r = math.sqrt(dx * dx + dy * dy) / radius
-            if r >= r_max:
-                continue
-            q = r / r_max * m
-            k = min(int(q), m - 1)
-            f = q - k
-            p = (1 - f) * table[k] + f * table[k + 1]
-            ii, jj = i % n, j % n
-            if r < 1.0:
-                w = r**4
-                h[ii, jj] = p + h_ref * (1.0 - w) + h[ii, jj] * w
-            else:
-                h[ii, jj] += p
+            dy = (j - gy) * scale
+            r2 = dx * dx + dy * dy
+            if r2 < r2_max:
+                r = math.sqrt(r2)
+                q = r * to_table
+                k = min(int(q), m - 1)
+                f = q - k
+                p = (1 - f) * table[k] + f * table[k + 1]
+                if r < 1.0:
+                    w = r2 * r2
+                    h[ii, jj] = p + h_ref * (1.0 - w) + h[ii, jj] * w
+                else:
+                    h[ii, jj] += p
+            jj += 1
+            if jj == n:
+                jj = 0
 
 
 def stamp_craters(h: np.ndarray, x0: float, y0: float, res: float,

@@ -26,10 +26,12 @@ def _bilinear(a: np.ndarray, gx: float, gy: float) -> float:
     j0 = math.floor(gy)
     fx = gx - i0
     fy = gy - j0
-    i0 %= n
-    j0 %= n
-    i1 = (i0 + 1) % n
-    j1 = (j0 + 1) % n
+    if i0 < 0 or i0 >= n:  # integer modulo is slow: only leave the home tile when needed
+        i0 %= n
+    if j0 < 0 or j0 >= n:
+        j0 %= n
+    i1 = i0 + 1 if i0 + 1 < n else 0
+    j1 = j0 + 1 if j0 + 1 < n else 0
     return ((1 - fx) * ((1 - fy) * a[i0, j0] + fy * a[i0, j1])
             + fx * ((1 - fy) * a[i1, j0] + fy * a[i1, j1]))
 
@@ -47,13 +49,16 @@ def block_max(h: np.ndarray, block: int = BLOCK) -> np.ndarray:
 
 
 @nb.njit(cache=True, inline="always")
-def _refine(ox, oy, oz, dx, dy, dz, h, x0, y0, res, lo, hi):
-    """Crossing in [lo, hi] (above at lo, below at hi): 6 bisections, then a secant step."""
-    f_lo = oz + lo * dz - _bilinear(h, (ox + lo * dx - x0) / res, (oy + lo * dy - y0) / res)
-    f_hi = oz + hi * dz - _bilinear(h, (ox + hi * dx - x0) / res, (oy + hi * dy - y0) / res)
+def _refine(oz, dz, gx0, gy0, dgx, dgy, h, lo, hi):
+    """Crossing in [lo, hi] (above at lo, below at hi): 6 bisections, then a secant step.
+
+    The ray is at height ``oz + t dz`` over grid point ``(gx0 + t dgx, gy0 + t dgy)``.
+    """
+    f_lo = oz + lo * dz - _bilinear(h, gx0 + lo * dgx, gy0 + lo * dgy)
+    f_hi = oz + hi * dz - _bilinear(h, gx0 + hi * dgx, gy0 + hi * dgy)
     for _ in range(6):
         mid = 0.5 * (lo + hi)
-        f = oz + mid * dz - _bilinear(h, (ox + mid * dx - x0) / res, (oy + mid * dy - y0) / res)
+        f = oz + mid * dz - _bilinear(h, gx0 + mid * dgx, gy0 + mid * dgy)
         if f <= 0.0:
             hi, f_hi = mid, f
         else:
@@ -65,32 +70,44 @@ def _refine(ox, oy, oz, dx, dy, dz, h, x0, y0, res, lo, hi):
 
 @nb.njit(cache=True)
 def _march(ox, oy, oz, dx, dy, dz, h, bmax, x0, y0, res, t_min, t_max, pix, hmax, frac):
-    """March one ray; returns the hit distance t (m) or inf."""
+    """March one ray; returns the hit distance t (m) or inf.
+
+    Divisions are hoisted out of the loop (reciprocals): they dominate its cost otherwise.
+    """
     n = h.shape[0]
     nbk = bmax.shape[0]
-    dgx = dx / res
-    dgy = dy / res
+    inv_res = 1.0 / res
+    inv_n = 1.0 / n
+    inv_block = 1.0 / BLOCK
+    dgx = dx * inv_res
+    dgy = dy * inv_res
+    inv_dgx = 1.0 / dgx if dgx != 0.0 else 0.0
+    inv_dgy = 1.0 / dgy if dgy != 0.0 else 0.0
+    gx0 = (ox - x0) * inv_res
+    gy0 = (oy - y0) * inv_res
     hxy = math.sqrt(dx * dx + dy * dy)
+    near_step = min(0.5 * res / max(hxy, 1e-9), 2.0 * res)
+    far_frac = max(frac, pix)
     t = t_min
     while t < t_max:
         pz = oz + t * dz
         if dz >= 0.0 and pz > hmax:
             return math.inf
-        gx = (ox + t * dx - x0) / res
-        gy = (oy + t * dy - y0) / res
-        wx = gx - n * math.floor(gx / n)
-        wy = gy - n * math.floor(gy / n)
-        bx = min(int(wx // BLOCK), nbk - 1)
-        by = min(int(wy // BLOCK), nbk - 1)
+        gx = gx0 + t * dgx
+        gy = gy0 + t * dgy
+        wx = gx - n * math.floor(gx * inv_n)
+        wy = gy - n * math.floor(gy * inv_n)
+        bx = min(int(wx * inv_block), nbk - 1)
+        by = min(int(wy * inv_block), nbk - 1)
         te = math.inf
         if dgx > 0:
-            te = (min((bx + 1) * BLOCK, n) - wx) / dgx
+            te = (min((bx + 1) * BLOCK, n) - wx) * inv_dgx
         elif dgx < 0:
-            te = (bx * BLOCK - wx) / dgx
+            te = (bx * BLOCK - wx) * inv_dgx
         if dgy > 0:
-            te = min(te, (min((by + 1) * BLOCK, n) - wy) / dgy)
+            te = min(te, (min((by + 1) * BLOCK, n) - wy) * inv_dgy)
         elif dgy < 0:
-            te = min(te, (by * BLOCK - wy) / dgy)
+            te = min(te, (by * BLOCK - wy) * inv_dgy)
         te = t + te + 1e-5
         top = bmax[bx, by]
         if pz > top and oz + te * dz > top:
@@ -98,10 +115,9 @@ def _march(ox, oy, oz, dx, dy, dz, h, bmax, x0, y0, res, t_min, t_max, pix, hmax
             continue
         # step: half a cell near, ``frac`` of the range (or one ray spacing) far;
         # the bracketed crossing is then refined by bisection
-        dt = max(min(0.5 * res / max(hxy, 1e-9), 2.0 * res), frac * t, t * pix)
-        tn = t + dt
-        if oz + tn * dz <= _bilinear(h, (ox + tn * dx - x0) / res, (oy + tn * dy - y0) / res):
-            return _refine(ox, oy, oz, dx, dy, dz, h, x0, y0, res, t, tn)
+        tn = t + max(near_step, far_frac * t)
+        if oz + tn * dz <= _bilinear(h, gx0 + tn * dgx, gy0 + tn * dgy):
+            return _refine(oz, dz, gx0, gy0, dgx, dgy, h, t, tn)
         t = tn
     return math.inf
 
@@ -181,31 +197,34 @@ def shadow_heights(h, sx, sy, tan_elev, res):
     Returns:
         (n, n) float32 shadow heights, m.
     """
+    if abs(sx) < 1e-9 and abs(sy) < 1e-9:
+        return h.copy()
+    if abs(sy) > abs(sx):  # sweep along the second axis: work on the transpose (row access)
+        return np.ascontiguousarray(_sweep_rows(np.ascontiguousarray(h.T), sy, sx,
+                                                tan_elev, res).T)
+    return _sweep_rows(h, sx, sy, tan_elev, res)
+
+
+@nb.njit(cache=True)
+def _sweep_rows(h, a, b, tan_elev, res):
+    """:func:`shadow_heights` for a sun mostly along the first axis (|a| >= |b|)."""
     n = h.shape[0]
     s = h.copy()
-    if abs(sx) < 1e-9 and abs(sy) < 1e-9:
-        return s
-    swap = abs(sy) > abs(sx)
-    a, b = (sy, sx) if swap else (sx, sy)
     sgn = 1 if a > 0 else -1
     off = b / abs(a)
     drop = res * math.sqrt(1.0 + off * off) * tan_elev
     start = n - 1 if sgn > 0 else 0
+    # the upstream sample is offset by the same ``off`` for every j: floor and wrap it once
+    base = math.floor(off)
+    f = off - base
     for k in range(2 * n):
         i = (start - sgn * k) % n
         iu = (i + sgn) % n
+        j0 = base % n
         for j in range(n):
-            yj = j + off
-            j0 = math.floor(yj)
-            f = yj - j0
-            j0 %= n
-            j1 = (j0 + 1) % n
-            if swap:
-                up = (1 - f) * s[j0, iu] + f * s[j1, iu]
-                s[j, i] = max(h[j, i], up - drop)
-            else:
-                up = (1 - f) * s[iu, j0] + f * s[iu, j1]
-                s[i, j] = max(h[i, j], up - drop)
+            j1 = j0 + 1 if j0 + 1 < n else 0
+            s[i, j] = max(h[i, j], (1 - f) * s[iu, j0] + f * s[iu, j1] - drop)
+            j0 = j1
     return s
 
 

@@ -95,21 +95,28 @@ def _surface(prep: PreparedTerrain, pts: np.ndarray) -> tuple[np.ndarray, ...]:
     return normals, lit, ids
 
 
-def shade(prep: PreparedTerrain, pts: np.ndarray, view_dirs: np.ndarray, w_soil: float,
-          hp: HapkeParams) -> tuple[np.ndarray, np.ndarray]:
-    """Reflectance (1/sr) and encoded object ids at hit points (N, 3) seen along (N, 3) rays."""
+def shade(prep: PreparedTerrain, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray,
+          w_soil: float, hp: HapkeParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shade the hits of rays (N, 3) from ``origin`` (3,) at distances ``t`` (N,) (inf = miss).
+
+    Returns:
+        reflectance (N,) 1/sr (0 for misses), encoded object ids (N,) and hit points (N, 3)
+        in the scene frame (NaN rows for misses).
+    """
     ter, sun = prep.ter, prep.sun
     flat = hapke_reflectance(np.array([max(sun[2], 0.05)]), np.array([1.0]),
                              np.array([max(sun[2], 0.05)]), w_soil, hp)[0]
-    r = np.zeros(len(pts))
-    ids = np.zeros(len(pts), np.int64)
+    n = len(dirs)
+    r = np.empty(n)
+    ids = np.empty(n, np.int64)
+    pts = np.empty((n, 3))
     hpar = np.array([hp.b, hp.c, hp.b_s0, hp.h_s, hp.b_c0, hp.h_c,
                      math.tan(math.radians(hp.theta_bar_deg))])
-    _shade_kernel(np.ascontiguousarray(pts), np.ascontiguousarray(view_dirs),
-                  np.asarray(sun, np.float64), ter.h, prep.shadow, prep.gx, prep.gy, ter.obj,
-                  ter.material, ter.albedo, ter.x0, ter.y0, ter.res, w_soil, hpar, _MAT_TABLE,
-                  AMBIENT * flat, r, ids)
-    return r, ids
+    _shade_kernel(np.asarray(origin, np.float64), np.ascontiguousarray(dirs),
+                  np.ascontiguousarray(t, np.float64), np.asarray(sun, np.float64), ter.h,
+                  prep.shadow, prep.gx, prep.gy, ter.obj, ter.material, ter.albedo, ter.x0,
+                  ter.y0, ter.res, w_soil, hpar, _MAT_TABLE, AMBIENT * flat, r, ids, pts)
+    return r, ids, pts
 
 
 _MAT_TABLE = np.array([MATERIALS.get(k, (0.0, 0.0, 1.0, 0.0)) for k in range(5)], np.float64)
@@ -123,14 +130,24 @@ def _hash01(a: float, b: float, salt: float) -> float:
 
 
 @nb.njit(cache=True, parallel=True)
-def _shade_kernel(pts, dirs, sun, h, shadow, gxa, gya, obj, material, albedo, x0, y0, res,
-                  w_soil, hp, mat_table, ambient, out_r, out_id):
-    """Per hit: normal, sunlit flag, id, material; Hapke soil or Lambert + Blinn-Phong (foil
-    with crinkled facets per node and height step); plus the interreflection fill."""
+def _shade_kernel(origin, dirs, t, sun, h, shadow, gxa, gya, obj, material, albedo, x0, y0,
+                  res, w_soil, hp, mat_table, ambient, out_r, out_id, out_pts):
+    """Per ray: its hit point; per hit: normal, sunlit flag, id, material; Hapke soil or
+    Lambert + Blinn-Phong (foil with crinkled facets per node and height step); plus the
+    interreflection fill. Misses get radiance 0, id 0 and a NaN point."""
     n = h.shape[0]
-    for k in nb.prange(pts.shape[0]):
-        gx = (pts[k, 0] - x0) / res
-        gy = (pts[k, 1] - y0) / res
+    for k in nb.prange(dirs.shape[0]):
+        if not math.isfinite(t[k]):
+            out_r[k] = 0.0
+            out_id[k] = 0
+            out_pts[k, 0] = out_pts[k, 1] = out_pts[k, 2] = math.nan
+            continue
+        px = origin[0] + dirs[k, 0] * t[k]
+        py = origin[1] + dirs[k, 1] * t[k]
+        pz = origin[2] + dirs[k, 2] * t[k]
+        out_pts[k, 0], out_pts[k, 1], out_pts[k, 2] = px, py, pz
+        gx = (px - x0) / res
+        gy = (py - y0) / res
         sx = raycast._bilinear(gxa, gx, gy)
         sy = raycast._bilinear(gya, gx, gy)
         inv = 1.0 / math.sqrt(sx * sx + sy * sy + 1.0)
@@ -146,7 +163,7 @@ def _shade_kernel(pts, dirs, sun, h, shadow, gxa, gya, obj, material, albedo, x0
         kd, ks, shin, crinkle = mat_table[mat, 0], mat_table[mat, 1], mat_table[mat, 2], \
             mat_table[mat, 3]
         if crinkle > 0:
-            kz = math.floor(pts[k, 2] / res)
+            kz = math.floor(pz / res)
             a, b = i + 0.37 * kz, j - 0.61 * kz
             nx += 2 * crinkle * (_hash01(a, b, 1.0) - 0.5)
             ny += 2 * crinkle * (_hash01(a, b, 2.0) - 0.5)
@@ -185,11 +202,7 @@ def render_view(prep: PreparedTerrain, cam: PinholeCam, *, w_soil: float, hp: Ha
     dirs = cam.ray_dirs(supersample)
     t = cast(prep, cam.position, dirs, cam.pixel_angle() / supersample, max_range_m)
     hit = np.isfinite(t)
-    pts = np.full(dirs.shape, np.nan)
-    pts[hit] = cam.position + dirs[hit] * t[hit, None]
-    rad = np.zeros(len(dirs))
-    ids = np.zeros(len(dirs), np.int64)
-    rad[hit], ids[hit] = shade(prep, pts[hit], dirs[hit], w_soil, hp)
+    rad, ids, pts = shade(prep, cam.position, dirs, t, w_soil, hp)
     k = supersample
     radiance = rad.reshape(h * k, w * k).astype(np.float32)
     if k > 1:
