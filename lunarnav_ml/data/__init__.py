@@ -1,4 +1,5 @@
-"""COCO loading and validation, YOLO-txt import, datasets, augmentation, DataModule."""
+"""COCO loading and validation, datasets, augmentation, DataModule (YOLO-txt and other real
+label formats are imported by :mod:`lunarnav_ml.realdata`)."""
 
 from lunarnav_ml.data.coco import CLASS_NAMES, ImageRecord, load_coco, read_image
 from lunarnav_ml.data.dataset import CocoDetection, collate

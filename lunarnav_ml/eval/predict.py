@@ -6,11 +6,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Protocol
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
-from lunarnav_ml.errors import InputError
+from lunarnav_ml.utils.images import read_rgb
 
 
 class Predictor(Protocol):
@@ -18,16 +17,6 @@ class Predictor(Protocol):
 
     def predict(self, images: list[np.ndarray], conf_thres: float = ..., iou_thres: float = ...
                 ) -> list[dict[str, np.ndarray]]: ...
-
-
-def read_rgb(path: Path) -> np.ndarray:
-    """Read an image file as HxWx3 uint8 RGB; grayscale is replicated to three channels."""
-    if not Path(path).is_file():
-        raise InputError(f"{path}: image file not found")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise InputError(f"{path}: not a readable image (corrupt or unknown format)")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def iter_batches(dataset: dict[str, Any], root: Path, batch: int) -> Iterator[tuple[list, list]]:

@@ -5,7 +5,9 @@ channel: onnxruntime fuses each DequantizeLinear -> Conv -> QuantizeLinear into 
 convolution (VNNI/AMX where the CPU has them). The box decoding, the NMS tail and the head's
 last 1x1 convolutions stay fp32: they turn logits into pixel coordinates, where an int8 step
 would move boxes by whole pixels, and they cost little. Mish activations stay fp32 too
-(onnxruntime has no integer Mish; see :func:`mish_nodes`).
+(onnxruntime has no integer Mish; see :func:`mish_nodes`), and so does the input convolution
+with its activation (:func:`input_conv_nodes`): with three input channels an integer kernel
+is slower than the float one, and the image itself is the least quantizable tensor.
 """
 
 from __future__ import annotations
@@ -16,7 +18,6 @@ import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-import cv2
 import numpy as np
 import onnx
 from google.protobuf.message import DecodeError
@@ -33,11 +34,11 @@ from lunarnav_ml.export.onnx_meta import read_metadata, set_metadata
 from lunarnav_ml.runtime import metadata as md
 from lunarnav_ml.runtime.preprocess import prepare_batch
 from lunarnav_ml.utils.atomic import write_bytes
+from lunarnav_ml.utils.images import IMAGE_SUFFIXES, read_rgb
 
 CALIBRATION_METHODS = {"minmax": CalibrationMethod.MinMax,
                        "percentile": CalibrationMethod.Percentile,
                        "entropy": CalibrationMethod.Entropy}
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
 
 class ImageCalibrationReader(CalibrationDataReader):
@@ -87,6 +88,20 @@ def fp32_tail_nodes(graph: onnx.GraphProto) -> list[str]:
         below = [j for out in graph.node[i].output for j in consumers.get(out, [])]
         conv_below[i] = any(graph.node[j].op_type == "Conv" or conv_below[j] for j in below)
     return [n.name for n, below in zip(graph.node, conv_below) if not below]
+
+
+ACTIVATION_OPS = {"LeakyRelu", "Relu", "Sigmoid", "Mul", "Clip"}
+
+
+def input_conv_nodes(graph: onnx.GraphProto) -> list[str]:
+    """Names of the Conv nodes that read a graph input and of the activation right after each
+    (a node whose only input is that Conv's output)."""
+    inputs = {i.name for i in graph.input}
+    convs = [n for n in graph.node if n.op_type == "Conv" and n.input[0] in inputs]
+    outs = {n.output[0] for n in convs}
+    acts = [n for n in graph.node if n.op_type in ACTIVATION_OPS
+            and n.input and all(i in outs for i in n.input)]
+    return [n.name for n in convs + acts]
 
 
 MISH_OPS = {"Clip", "Exp", "Add", "Mul", "Div"}  # the ops of ExportMish (export/onnx_export.py)
@@ -147,7 +162,8 @@ def quantize_int8(fp32_path: str | os.PathLike, out_path: str | os.PathLike,
             src, dst, ImageCalibrationReader(calibration_images, meta),
             quant_format=QuantFormat.QDQ, activation_type=QuantType.QUInt8,
             weight_type=QuantType.QInt8, per_channel=per_channel,
-            nodes_to_exclude=fp32_tail_nodes(model.graph) + mish_nodes(model.graph),
+            nodes_to_exclude=(fp32_tail_nodes(model.graph) + mish_nodes(model.graph)
+                              + input_conv_nodes(model.graph)),
             calibrate_method=CALIBRATION_METHODS[method],
             extra_options={"WeightSymmetric": True, "ActivationSymmetric": False})
         qmodel = onnx.load(dst)
@@ -197,10 +213,4 @@ def load_calibration_images(source: str | os.PathLike, n: int = 32) -> list[np.n
     if not paths:
         raise InputError(f"{source}: no images found (expected .png/.jpg files)")
     picks = np.unique(np.linspace(0, len(paths) - 1, min(n, len(paths))).round().astype(int))
-    images = []
-    for i in picks:
-        image = cv2.imread(str(paths[i]), cv2.IMREAD_COLOR)
-        if image is None:
-            raise InputError(f"{paths[i]}: not a readable image")
-        images.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
-    return images
+    return [read_rgb(paths[i]) for i in picks]

@@ -27,9 +27,9 @@ from pycocotools.cocoeval import COCOeval
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.coco_metrics import check_results, coco_ap, coco_from_dict
 from lunarnav_ml.eval.plots import draw_overlay
-from lunarnav_ml.eval.predict import read_rgb
 from lunarnav_ml.realdata.sources import UNKNOWN_CAMERA
 from lunarnav_ml.utils import atomic
+from lunarnav_ml.utils.images import read_rgb
 
 BUDGETS = (1, 3, 5, 10)  # top-scoring detections kept per image and class
 IOU_THRESHOLD = 0.5

@@ -14,11 +14,11 @@ from typing import Any
 
 import yaml
 
-from lunarnav_ml.data.yolo_txt import IMAGE_SUFFIXES
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.realdata.category_map import CategoryMap
 from lunarnav_ml.realdata.convert import SplitLabels, image_size
 from lunarnav_ml.realdata.sources import original_name
+from lunarnav_ml.utils.images import IMAGE_SUFFIXES
 
 NAME_FILES = ("data.yaml", "data.yml", "classes.txt", "obj.names")
 

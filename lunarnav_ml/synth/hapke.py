@@ -119,37 +119,34 @@ def _h_scalar(x: float, w: float) -> float:
     return 1.0 / (1.0 - w * x * (r0 + (1.0 - 2.0 * r0 * x) / 2.0 * math.log((1.0 + x) / x)))
 
 
-@nb.njit(cache=True, inline="always")
-def _e1(x: float, tan_tb: float) -> float:
-    return math.exp(-2.0 / math.pi / tan_tb / max(math.tan(x), _EPS))
-
-
-@nb.njit(cache=True, inline="always")
-def _e2(x: float, tan_tb: float) -> float:
-    return math.exp(-1.0 / math.pi / tan_tb**2 / max(math.tan(x), _EPS) ** 2)
-
-
 @nb.njit(cache=True)
 def hapke_one(mu0, mu, cos_g, w, b, c, b_s0, h_s, b_c0, h_c, tan_tb):
-    """Scalar :func:`hapke_reflectance` (same formulas), 1/sr."""
+    """Scalar :func:`hapke_reflectance` (same formulas), 1/sr.
+
+    Angles enter through their cosines only: sin, tan and half-angle tangents come from
+    identities (sin i = sqrt(1 - mu0^2), tan(x / 2) = sqrt((1 - cos x) / (1 + cos x))), which
+    saves ten transcendental calls per sample against the vectorized form.
+    """
     if mu0 <= _EPS or mu <= _EPS:
         return 0.0
     cg = min(max(cos_g, -1.0), 1.0)
-    g = math.acos(cg)
     mu0e, mue, s = mu0, mu, 1.0
     if tan_tb > 1e-9:
-        i = math.acos(min(max(mu0, _EPS), 1.0))
-        e = math.acos(min(max(mu, _EPS), 1.0))
-        si, se = max(math.sin(i), _EPS), max(math.sin(e), _EPS)
+        ci = min(max(mu0, _EPS), 1.0)
+        ce = min(max(mu, _EPS), 1.0)
+        si_raw = math.sqrt(max(1.0 - ci * ci, 0.0))
+        se_raw = math.sqrt(max(1.0 - ce * ce, 0.0))
+        si, se = max(si_raw, _EPS), max(se_raw, _EPS)
         cpsi = min(max((cg - mu0 * mu) / (si * se), -1.0), 1.0)
         psi = math.acos(cpsi)
         chi = 1.0 / math.sqrt(1.0 + math.pi * tan_tb**2)
-        s2 = math.sin(0.5 * psi) ** 2
-        f = math.exp(-2.0 * math.tan(min(0.5 * psi, math.pi / 2 - 1e-4)))
-        e1i, e1e, e2i, e2e = _e1(i, tan_tb), _e1(e, tan_tb), _e2(i, tan_tb), _e2(e, tan_tb)
-        eta_i = chi * (math.cos(i) + math.sin(i) * tan_tb * e2i / (2.0 - e1i))
-        eta_e = chi * (math.cos(e) + math.sin(e) * tan_tb * e2e / (2.0 - e1e))
-        if i <= e:
+        s2 = 0.5 * (1.0 - cpsi)  # sin^2(psi / 2)
+        f = math.exp(-2.0 * _half_tan(cpsi, _TAN_PSI_MAX))
+        ti, te = si_raw / ci, se_raw / ce
+        e1i, e1e, e2i, e2e = _e1(ti, tan_tb), _e1(te, tan_tb), _e2(ti, tan_tb), _e2(te, tan_tb)
+        eta_i = chi * (ci + si_raw * tan_tb * e2i / (2.0 - e1i))
+        eta_e = chi * (ce + se_raw * tan_tb * e2e / (2.0 - e1e))
+        if ci >= ce:  # i <= e
             den = 2.0 - e1e - psi / math.pi * e1i
             mu0e = chi * (mu0 + si * tan_tb * (cpsi * e2e + s2 * e2i) / den)
             mue = chi * (mu + se * tan_tb * (e2e - s2 * e2i) / den)
@@ -160,17 +157,43 @@ def hapke_one(mu0, mu, cos_g, w, b, c, b_s0, h_s, b_c0, h_c, tan_tb):
             mue = chi * (mu + se * tan_tb * (cpsi * e2i + s2 * e2e) / den)
             corr = chi * mu / eta_e
         s = mue / eta_e * mu0 / eta_i * chi / (1.0 - f + f * corr)
-    tg = math.tan(0.5 * min(g, math.pi - 1e-3))
+    tg = _half_tan(cg, _TAN_G_MAX)
     b_sh = b_s0 / (1.0 + tg / h_s)
     z = max(tg / h_c, 1e-9)
     b_cb = b_c0 * (1.0 + (1.0 - math.exp(-z)) / z) / (2.0 * (1.0 + z) ** 2)
     w = min(w, 0.999)
-    back = (1.0 - b * b) / (1.0 - 2.0 * b * cg + b * b) ** 1.5
-    fwd = (1.0 - b * b) / (1.0 + 2.0 * b * cg + b * b) ** 1.5
+    q_back = 1.0 - 2.0 * b * cg + b * b
+    q_fwd = 1.0 + 2.0 * b * cg + b * b
+    back = (1.0 - b * b) / (q_back * math.sqrt(q_back))
+    fwd = (1.0 - b * b) / (q_fwd * math.sqrt(q_fwd))
     p = 0.5 * (1.0 + c) * back + 0.5 * (1.0 - c) * fwd
     ms = _h_scalar(mu0e, w) * _h_scalar(mue, w) - 1.0
     r = w / (4 * math.pi) * mu0e / (mu0e + mue) * (p * (1.0 + b_sh) + ms) * (1.0 + b_cb) * s
     return max(r, 0.0)
+
+
+_TAN_PSI_MAX = math.tan(math.pi / 2 - 1e-4)  # the vectorized form's clamp of psi / 2
+_TAN_G_MAX = math.tan(0.5 * (math.pi - 1e-3))  # ... and of g / 2
+
+
+@nb.njit(cache=True, inline="always")
+def _half_tan(cos_x: float, cap: float) -> float:
+    """tan(x / 2) from cos x (x in [0, pi]), capped at ``cap``."""
+    if 1.0 + cos_x <= 0.0:
+        return cap
+    return min(math.sqrt(max(1.0 - cos_x, 0.0) / (1.0 + cos_x)), cap)
+
+
+@nb.njit(cache=True, inline="always")
+def _e1(tan_x: float, tan_tb: float) -> float:
+    """Hapke's E1 of an angle x, from tan x."""
+    return math.exp(-2.0 / math.pi / tan_tb / max(tan_x, _EPS))
+
+
+@nb.njit(cache=True, inline="always")
+def _e2(tan_x: float, tan_tb: float) -> float:
+    """Hapke's E2 of an angle x, from tan x."""
+    return math.exp(-1.0 / math.pi / tan_tb**2 / max(tan_x, _EPS) ** 2)
 
 
 @nb.njit(cache=True, parallel=True)

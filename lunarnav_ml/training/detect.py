@@ -12,8 +12,8 @@ from tqdm import tqdm
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.training.api import Detector
 from lunarnav_ml.utils import atomic
+from lunarnav_ml.utils.images import IMAGE_SUFFIXES, read_rgb
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 CLASS_COLORS_BGR = ((0, 200, 255), (255, 160, 0), (60, 60, 255))  # crater, rock, artifact
 
 
@@ -28,14 +28,6 @@ def list_images(source: Path) -> list[Path]:
     if not files:
         raise InputError(f"{source}: the folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
     return files
-
-
-def read_rgb(path: Path) -> np.ndarray:
-    """Read an image as HxWx3 uint8 RGB (grayscale replicated)."""
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise InputError(f"{path}: corrupt or unreadable image")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def draw_overlay(image: np.ndarray, pred: dict[str, np.ndarray], class_names: list[str],

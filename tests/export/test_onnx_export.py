@@ -30,9 +30,11 @@ def torch_predict(parts, images, size, conf, iou):
 
 
 def assert_decoded_close(got, ref):
-    """rtol 1e-3 everywhere; absolute floors of 1e-3 px on box fields, 1e-5 on probabilities
-    (a relative test alone is meaningless for a coordinate near 0)."""
-    np.testing.assert_allclose(got[..., :4], ref[..., :4], rtol=1e-3, atol=1e-3)
+    """rtol 1e-3 everywhere; absolute floors of 0.01 px on box fields, 1e-5 on probabilities
+    (a relative test alone is meaningless for a value near 0: on an AVX2-only CPU the float
+    summation order of onnxruntime and PyTorch differs enough to move a 0.4 px box side of
+    this untrained net by 0.002 px)."""
+    np.testing.assert_allclose(got[..., :4], ref[..., :4], rtol=1e-3, atol=1e-2)
     np.testing.assert_allclose(got[..., 4:], ref[..., 4:], rtol=1e-3, atol=1e-5)
 
 

@@ -12,6 +12,7 @@ from lunarnav_ml.export.bench import random_detector, synthetic_frame
 from lunarnav_ml.export.onnx_export import export_onnx
 from lunarnav_ml.export.quantize import (
     fp32_tail_nodes,
+    input_conv_nodes,
     load_calibration_images,
     mish_nodes,
     quantize_int8,
@@ -46,6 +47,19 @@ def test_mish_islands_found(onnx_path, tmp_path):
     assert {n.op_type for n in graph.node if n.name in names} == {
         "Constant", "Clip", "Exp", "Add", "Mul", "Div"}
     assert not names & set(fp32_tail_nodes(graph))
+
+
+def test_input_conv_stays_fp32(onnx_path, int8_path):
+    graph = onnx.load(onnx_path).graph
+    assert [n.op_type for n in graph.node if n.name in set(input_conv_nodes(graph))] == [
+        "Conv", "LeakyRelu"]
+    qgraph = onnx.load(int8_path).graph
+    first = next(n for n in qgraph.node if n.op_type == "Conv")
+    assert first.input[0] == "images"  # the float image, not a DequantizeLinear output
+    weight = {i.name for i in qgraph.initializer}
+    assert first.input[1] in weight  # float weight, no QDQ pair around it
+    after = [n for n in qgraph.node if first.output[0] in n.input]
+    assert [n.op_type for n in after] == ["LeakyRelu"]
 
 
 def test_int8_graph_and_metadata(int8_path):

@@ -41,7 +41,7 @@ def test_detect_bad_inputs(weights, tmp_path):
     bad.write_bytes(b"xx")
     args = parser.parse_args(["detect", str(bad), "--weights", str(weights), "--out",
                               str(tmp_path / "o"), "--quiet"])
-    with pytest.raises(InputError, match="bad.png: corrupt"):
+    with pytest.raises(InputError, match="bad.png: not a readable image"):
         args.func(args)
     args = parser.parse_args(["detect", str(bad), "--weights", str(weights), "--conf", "2"])
     with pytest.raises(ConfigError, match="--conf must lie in"):
