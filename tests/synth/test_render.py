@@ -1,6 +1,7 @@
 """Renderer physics: disparity = f B / Z, shadows away from the sun, black sky."""
 
 import numpy as np
+import pytest
 
 from lunarnav_ml.synth import pipeline as P
 
@@ -71,3 +72,20 @@ def test_supersampling_keeps_geometry_and_smooths(small_cfg):
     np.testing.assert_array_equal(one.ids, two.ids)
     diff = np.abs(one.left.astype(int) - two.left.astype(int))
     assert diff.mean() < 6 and diff.max() > 0
+
+
+def test_shadow_map_is_the_same_along_either_axis():
+    """The sweep for a sun mostly along y runs on the transpose: it must equal the x sweep of
+    the transposed field, and a wall casts a shadow of the right length (h / tan(elev))."""
+    from lunarnav_ml.synth.raycast import shadow_heights
+
+    rng = np.random.default_rng(0)
+    h = rng.normal(0, 0.05, (64, 64)).astype(np.float32)
+    h[30, :] = 1.0  # a 1 m wall across x = 30
+    along_x = shadow_heights(h, 1.0, 0.3, 0.5, 0.1)  # sun toward +x, 26.6 deg elevation
+    along_y = shadow_heights(np.ascontiguousarray(h.T), 0.3, 1.0, 0.5, 0.1)
+    np.testing.assert_allclose(along_y, along_x.T, rtol=0, atol=1e-6)
+    # downstream of the wall (away from the sun, -x) the shadow height falls 0.05 m per cell
+    drop = 0.1 * np.sqrt(1 + 0.3**2) * 0.5
+    assert along_x[25, 10] == pytest.approx(1.0 - 5 * drop, abs=0.02)
+    assert (along_x >= h).all()
