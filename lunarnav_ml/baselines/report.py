@@ -98,9 +98,11 @@ def baseline_report(
         run = lambda img, crs, rng: _run_stereo(
             ann_path.parent, img, rng, scfg, disparity, noise_px)
     records, timings, false_alarms = [], [], 0
+    craters = {img["id"]: with_protocol_target(img, craters.get(img["id"], []))
+               for img in images}
     for img, dets, secs in _iterate(images, craters, run, seed, progress):
-        targets = _targets(img, craters.get(img["id"], []), min_diameter_m)
-        recs, fa = match_detections(targets, dets, craters.get(img["id"], []), img)
+        targets = _targets(img, craters[img["id"]], min_diameter_m)
+        recs, fa = match_detections(targets, dets, craters[img["id"]], img)
         records += recs
         false_alarms += fa
         timings.append(secs)
@@ -145,6 +147,8 @@ def _iterate(
 
 def rover_center(ann: dict[str, Any], camera: dict[str, Any]) -> np.ndarray:
     """A crater annotation's rim-circle center in the rover frame, m (3,)."""
+    if "center_rover_m" in ann:  # a protocol target added by :func:`with_protocol_target`
+        return np.asarray(ann["center_rover_m"], float)
     return camera_to_rover(np.asarray(ann["center_cam_m"], float), float(camera["height_m"]),
                            float(camera["pitch_deg"]), float(camera.get("roll_deg", 0.0)))[0]
 
@@ -209,13 +213,33 @@ def load_disparity(
     return np.where(disp > 0, noisy, np.nan)
 
 
+def _is_target(ann: dict, item: dict) -> bool:
+    """The annotation is the protocol item's target crater (its exact diameter, its range)."""
+    return (abs(ann["diameter_m"] - item["diameter_m"]) < 0.01 * item["diameter_m"]
+            and abs(ann.get("near_rim_range_m", np.inf) - item["near_rim_range_m"]) < 1.0)
+
+
+def with_protocol_target(img: dict, crs: list[dict]) -> list[dict]:
+    """The image's crater annotations, plus the protocol target when no annotation is it.
+
+    The camera labels only craters that show in the image (a small crater far away does not),
+    but the protocol's target is always there: ``near_rim_range_m + D / 2`` straight ahead of
+    the rover (``synth.protocols``), so the lidar and stereo baselines are scored on it and
+    find it in their orbital map whether or not the camera saw it.
+    """
+    item = img.get("protocol_item")
+    if not item or any(_is_target(a, item) for a in crs):
+        return crs
+    d, near = float(item["diameter_m"]), float(item["near_rim_range_m"])
+    return [*crs, {"diameter_m": d, "near_rim_range_m": near, "depth_m": 0.2 * d,
+                   "center_rover_m": [near + d / 2, 0.0, 0.0], "protocol_target": True}]
+
+
 def _targets(img: dict, crs: list[dict], min_d: float) -> list[dict]:
     """The protocol target crater of the item, or every crater with D >= min_d."""
     item = img.get("protocol_item")
     if item:
-        near = [a for a in crs if abs(a["diameter_m"] - item["diameter_m"]) < 0.25 * item[
-            "diameter_m"] and abs(a.get("near_rim_range_m", 0) - item["near_rim_range_m"]) < 2.0]
-        return sorted(near, key=lambda a: abs(a["diameter_m"] - item["diameter_m"]))[:1]
+        return [a for a in crs if _is_target(a, item)][:1]
     return [a for a in crs if a["diameter_m"] >= min_d]
 
 

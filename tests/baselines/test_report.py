@@ -1,0 +1,41 @@
+"""Baseline report: protocol targets are scored whether or not the camera labelled them."""
+
+import numpy as np
+import pytest
+
+from lunarnav_ml.baselines.report import _targets, match_detections, with_protocol_target
+
+CAMERA = {"height_m": 1.5, "pitch_deg": 20.0, "roll_deg": 0.0}
+
+
+def _img(d=5.0, near=15.0):
+    return {"id": 1, "camera": CAMERA,
+            "protocol_item": {"diameter_m": d, "near_rim_range_m": near, "approach_deg": 0.0}}
+
+
+def test_unlabelled_target_is_added_straight_ahead():
+    background = {"diameter_m": 3.9879, "near_rim_range_m": 15.2,
+                  "center_cam_m": [0.0, 1.0, 17.0]}
+    crs = with_protocol_target(_img(), [background])
+    assert len(crs) == 2 and crs[-1]["protocol_target"]
+    (target,) = _targets(_img(), crs, 0.0)
+    assert target["diameter_m"] == 5.0  # never the 4 m background crater
+    dets = [np.array([17.7, 0.1, 0.0]), np.array([40.0, 5.0, 0.0])]
+    records, false_alarms = match_detections([target], dets, crs, _img())
+    assert records[0]["hit"] and records[0]["dx"] == pytest.approx(0.2)
+    assert false_alarms == 1  # the detection 40 m out matches no crater
+
+
+def test_labelled_target_is_not_duplicated():
+    labelled = {"diameter_m": 5.0, "near_rim_range_m": 15.3, "center_cam_m": [0.0, 1.0, 17.0]}
+    assert with_protocol_target(_img(), [labelled]) == [labelled]
+    assert with_protocol_target({"id": 2, "camera": CAMERA}, [labelled]) == [labelled]
+
+
+def test_missed_target_counts_as_a_miss():
+    crs = with_protocol_target(_img(d=10.0, near=19.0), [])
+    records, _ = match_detections(_targets(_img(10.0, 19.0), crs, 0.0), [], crs,
+                                  _img(10.0, 19.0))
+    (rec,) = records
+    assert rec["diameter_m"] == 10.0 and rec["near_rim_range_m"] == 19.0
+    assert not rec["hit"] and np.isnan(rec["dx"])
