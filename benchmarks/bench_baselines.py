@@ -88,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
                             noise_px=args.noise_px, max_images=args.max_images, progress=True)
         summary[method] = {
             "target": TARGETS[method], "pd_all": m["pd_all"], "n_targets": m["n_targets"],
+            "n_hidden": m["n_hidden"], "pd_including_hidden": m["pd_including_hidden"],
             "fa_per_image": m["false_alarms_per_image"],
             "three_sigma_m": {d: r["three_sigma_m"] for d, r in m["position_error"].items()},
             "three_rms_m": {d: r["three_rms_m"] for d, r in m["position_error"].items()},

@@ -103,6 +103,8 @@ def baseline_report(
     for img, dets, secs in _iterate(images, craters, run, seed, progress):
         targets = _targets(img, craters[img["id"]], min_diameter_m)
         recs, fa = match_detections(targets, dets, craters[img["id"]], img)
+        for rec, target in zip(recs, targets):
+            rec["visible"] = _visible(ann_path.parent, img, target, method)
         records += recs
         false_alarms += fa
         timings.append(secs)
@@ -235,6 +237,28 @@ def with_protocol_target(img: dict, crs: list[dict]) -> list[dict]:
                    "center_rover_m": [near + d / 2, 0.0, 0.0], "protocol_target": True}]
 
 
+MIN_LIDAR_RETURNS = 10  # noise-free returns on the far half of a crater for the sensor to see it
+
+
+def _visible(root: Path, img: dict, target: dict, method: str) -> bool:
+    """Whether the sensor can see the target at all (hidden targets are left out of Pd, like
+    the camera labels' "occluded" rule): for the camera, its label is not ignored as
+    occluded; for the lidar, the noise-free scan has at least ``MIN_LIDAR_RETURNS`` returns
+    inside the far half of its rim circle (relief between rover and crater can hide it all).
+    """
+    if "occluded" in target.get("ignore_reasons", []):
+        return False
+    if method != "lidar" or "lidar_file" not in img:
+        return True
+    center = rover_center(target, img["camera"])[:2]
+    with np.load(root / img["lidar_file"]) as scan:
+        pts = np.asarray(scan["points_true"], float)[:, :2]
+    rel = pts - center
+    inside = np.hypot(rel[:, 0], rel[:, 1]) < 0.5 * target["diameter_m"]
+    far = rel @ center / max(float(np.linalg.norm(center)), 1e-9) > 0
+    return int(np.count_nonzero(inside & far)) >= MIN_LIDAR_RETURNS
+
+
 def _targets(img: dict, crs: list[dict], min_d: float) -> list[dict]:
     """The protocol target crater of the item, or every crater with D >= min_d."""
     item = img.get("protocol_item")
@@ -283,6 +307,8 @@ def summarize(
     significant_pd: float,
 ) -> dict[str, Any]:
     """Pd vs range per diameter, 3-sigma per diameter, paper values and timings."""
+    all_records = records
+    records = [r for r in records if r.get("visible", True)]
     diams = sorted({r["diameter_m"] for r in records})
     pd_vs_range, position = {}, {}
     for dm in diams:
@@ -300,14 +326,17 @@ def summarize(
         position[f"{dm:g}"]["paper_3sigma_m"] = paper
     hits = [r["hit"] for r in records]
     return {
-        "n_images": n_images, "n_targets": len(records),
+        "n_images": n_images, "n_targets": len(all_records),
+        "n_hidden": len(all_records) - len(records),
         "pd_all": float(np.mean(hits)) if hits else None,
+        "pd_including_hidden": float(np.mean([r["hit"] for r in all_records]))
+        if all_records else None,
         "false_alarms_per_image": false_alarms / max(n_images, 1),
         "pd_vs_range": pd_vs_range, "position_error": position,
         "paper_pd": PAPER_PD[method],
         "seconds_per_item": {"mean": float(np.mean(timings)) if timings else None,
                              "max": float(np.max(timings)) if timings else None},
-        "records": records,
+        "records": all_records,
     }
 
 
@@ -348,7 +377,9 @@ def render_markdown(metrics: dict[str, Any]) -> str:
     m = metrics
     src = f", disparity: {m['disparity']}" if m.get("disparity") else ""
     lines = [f"# {m['method']} baseline", "", f"Dataset: `{m['dataset']}`{src}", "",
-             f"- images {m['n_images']}, targets {m['n_targets']}, Pd (all) {_fmt(m['pd_all'])}, "
+             f"- images {m['n_images']}, targets {m['n_targets']} ({m.get('n_hidden', 0)} hidden "
+             f"from the sensor, left out of Pd), Pd (all visible) {_fmt(m['pd_all'])}, Pd "
+             f"counting hidden targets as misses {_fmt(m.get('pd_including_hidden'))}, "
              f"false alarms per image {m['false_alarms_per_image']:.3f}",
              f"- seconds per item (1 thread): mean {_fmt(m['seconds_per_item']['mean'])}, "
              f"max {_fmt(m['seconds_per_item']['max'])}", f"- paper: {m['paper_pd']}", "",

@@ -39,3 +39,17 @@ def test_missed_target_counts_as_a_miss():
     (rec,) = records
     assert rec["diameter_m"] == 10.0 and rec["near_rim_range_m"] == 19.0
     assert not rec["hit"] and np.isnan(rec["dx"])
+
+
+def test_lidar_target_hidden_without_returns_on_its_far_half(tmp_path):
+    from lunarnav_ml.baselines.report import _visible
+
+    img = {**_img(d=10.0, near=15.0), "lidar_file": "scan.npz"}
+    (target,) = with_protocol_target(img, [])  # centre (20, 0)
+    far_wall = np.column_stack([np.linspace(21, 24.5, 30), np.zeros(30), np.zeros(30)])
+    np.savez(tmp_path / "scan.npz", points_true=far_wall)
+    assert _visible(tmp_path, img, target, "lidar")
+    np.savez(tmp_path / "scan.npz", points_true=far_wall - (10.0, 0.0, 0.0))  # in front of the crater
+    assert not _visible(tmp_path, img, target, "lidar")
+    assert _visible(tmp_path, img, target, "stereo")
+    assert not _visible(tmp_path, img, {**target, "ignore_reasons": ["occluded"]}, "stereo")
