@@ -377,12 +377,12 @@ def render_markdown(metrics: dict[str, Any]) -> str:
     m = metrics
     src = f", disparity: {m['disparity']}" if m.get("disparity") else ""
     lines = [f"# {m['method']} baseline", "", f"Dataset: `{m['dataset']}`{src}", "",
-             f"- images {m['n_images']}, targets {m['n_targets']} ({m.get('n_hidden', 0)} hidden "
-             f"from the sensor, left out of Pd), Pd (all visible) {_fmt(m['pd_all'])}, Pd "
-             f"counting hidden targets as misses {_fmt(m.get('pd_including_hidden'))}, "
-             f"false alarms per image {m['false_alarms_per_image']:.3f}",
-             f"- seconds per item (1 thread): mean {_fmt(m['seconds_per_item']['mean'])}, "
-             f"max {_fmt(m['seconds_per_item']['max'])}", f"- paper: {m['paper_pd']}", "",
+             (f"- images {m['n_images']}, targets {m['n_targets']} ({m.get('n_hidden', 0)} "
+              f"hidden from the sensor, left out of Pd), Pd (all visible) {_fmt(m['pd_all'])}, "
+              f"Pd counting hidden targets as misses {_fmt(m.get('pd_including_hidden'))}, "
+              f"false alarms per image {m['false_alarms_per_image']:.3f}"),
+             (f"- seconds per item (1 thread): mean {_fmt(m['seconds_per_item']['mean'])}, "
+              f"max {_fmt(m['seconds_per_item']['max'])}"), f"- paper: {m['paper_pd']}", "",
              "## 3-sigma horizontal position error", "",
              "| D (m) | n | 3 sigma (m) | 3 rms (m) | paper 3 sigma (m) |", "|---|---|---|---|---|"]
     for dm, row in m["position_error"].items():
