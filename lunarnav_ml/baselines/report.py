@@ -225,16 +225,19 @@ def with_protocol_target(img: dict, crs: list[dict]) -> list[dict]:
     """The image's crater annotations, plus the protocol target when no annotation is it.
 
     The camera labels only craters that show in the image (a small crater far away does not),
-    but the protocol's target is always there: ``near_rim_range_m + D / 2`` straight ahead of
-    the rover (``synth.protocols``), so the lidar and stereo baselines are scored on it and
-    find it in their orbital map whether or not the camera saw it.
+    but the protocol's target is always there, straight ahead of the rover
+    (:func:`lunarnav_ml.synth.protocols.target_distance_m`), so the lidar and stereo baselines
+    are scored on it and find it in their orbital map whether or not the camera saw it.
     """
+    from lunarnav_ml.synth.protocols import TARGET_DEPTH_RATIO, target_distance_m
+
     item = img.get("protocol_item")
     if not item or any(_is_target(a, item) for a in crs):
         return crs
     d, near = float(item["diameter_m"]), float(item["near_rim_range_m"])
-    return [*crs, {"diameter_m": d, "near_rim_range_m": near, "depth_m": 0.2 * d,
-                   "center_rover_m": [near + d / 2, 0.0, 0.0], "protocol_target": True}]
+    return [*crs, {"diameter_m": d, "near_rim_range_m": near, "depth_m": TARGET_DEPTH_RATIO * d,
+                   "center_rover_m": [target_distance_m(d, near), 0.0, 0.0],
+                   "protocol_target": True}]
 
 
 MIN_LIDAR_RETURNS = 10  # noise-free returns on the far half of a crater for the sensor to see it

@@ -90,7 +90,7 @@ def fp32_tail_nodes(graph: onnx.GraphProto) -> list[str]:
     return [n.name for n, below in zip(graph.node, conv_below) if not below]
 
 
-ACTIVATION_OPS = {"LeakyRelu", "Relu", "Sigmoid", "Mul", "Clip"}
+ACTIVATION_OPS = {"LeakyRelu", "Relu"}  # one-input activations after a conv (Mish: mish_nodes)
 
 
 def input_conv_nodes(graph: onnx.GraphProto) -> list[str]:

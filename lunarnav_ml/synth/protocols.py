@@ -29,6 +29,13 @@ from lunarnav_ml.synth.scene import SceneSpec, TargetCrater, TerrainSpec, sample
 DIAMETERS_M = (5.0, 7.0, 10.0, 12.0, 15.0, 17.0, 20.0)
 APPROACH_DEG = (0.0, 90.0, 180.0, 270.0)
 PROTOCOLS = ("paper-mono", "paper-stereo", "paper-lidar")
+TARGET_DEPTH_RATIO = 0.2  # the target crater is fresh: depth / diameter 0.2, rim 0.04 D
+
+
+def target_distance_m(diameter_m: float, near_rim_range_m: float) -> float:
+    """Horizontal distance from the sensor's ground point to the target's centre, m: the
+    target lies straight ahead (along the approach heading) at near-rim range + radius."""
+    return near_rim_range_m + diameter_m / 2
 
 
 def protocol_config(cfg: SynthConfig) -> SynthConfig:
@@ -79,9 +86,10 @@ def _item_spec(protocol: str, cfg: SynthConfig, seed: int, d_i: int, approach: f
         roughness_rms_m=mid(cfg.terrain.roughness_rms_m),
         crater_density=mid(cfg.craters.density_per_m2), fresh_fraction=0.5,
         rock_density=mid(cfg.rocks.density_per_m2), albedo_rms=mid(cfg.hapke.albedo_texture_rms),
-        targets=(TargetCrater(0.0, 0.0, diameter, degradation=0.1, depth_ratio=0.2,
-                              rim_ratio=0.04),), clear_radius_m=1.0)
-    dist = near_m + diameter / 2
+        targets=(TargetCrater(0.0, 0.0, diameter, degradation=0.1,
+                              depth_ratio=TARGET_DEPTH_RATIO, rim_ratio=0.04),),
+        clear_radius_m=1.0)
+    dist = target_distance_m(diameter, near_m)
     a = math.radians(approach)
     sensor = dataclasses.replace(sample_sensor(cfg, rng), exposure=0.85)
     item = {"diameter_m": diameter, "approach_deg": approach, "near_rim_range_m": near_m,
