@@ -127,7 +127,8 @@ def relief_from_heightmap(path: str | Path = DTM_PNG, m_per_px: float = 2.0,
         rms.append(float(np.sqrt(0.5 * (np.mean(dx**2) + np.mean(dy**2)))))
     lags = np.asarray(lags_px, float) * m_per_px
     hurst, icpt = np.polyfit(np.log10(lags), np.log10(rms), 1)
-    return ReliefFit(float(hurst), float(10 ** (icpt + hurst)), tuple(lags), tuple(rms))
+    return ReliefFit(float(hurst), float(10 ** (icpt + hurst)), tuple(float(v) for v in lags),
+                     tuple(float(v) for v in rms))
 
 
 def _plane(z: np.ndarray) -> np.ndarray:
