@@ -6,11 +6,20 @@ import pytest
 
 from lunarnav_ml.export.bench import random_detector
 from lunarnav_ml.export.onnx_export import export_onnx
+from lunarnav_ml.models.presets import PRESETS, Preset
 
 
 @pytest.fixture(scope="session")
 def parts():
     return random_detector("nano", img_size=128, seed=0)
+
+
+@pytest.fixture
+def mish_parts(monkeypatch):
+    """An untrained 64 px detector with YOLOv4's Mish backbone (the medium and full presets'
+    activation) at small's size: depth 0.33, so 44 backbone activations."""
+    monkeypatch.setitem(PRESETS, "small-mish", Preset(depth=0.33, width=0.375))
+    return random_detector("small-mish", img_size=64, seed=0)
 
 
 def _cached_export(parts, tmp_path_factory, name, **kwargs):

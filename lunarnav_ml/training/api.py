@@ -110,9 +110,10 @@ class Detector:
                 for pred, image_id in zip(preds, image_ids)
                 for b, score, label in zip(pred["boxes"], pred["scores"], pred["labels"])]
 
-    def save(self, path: str | Path) -> Path:
-        """Write a slim ``.pt`` file (weights + config) that :func:`load_detector` reads."""
-        return save_slim(path, self.config, self.model)
+    def save(self, path: str | Path, half: bool = False) -> Path:
+        """Write a slim ``.pt`` file (weights + config) that :func:`load_detector` reads;
+        ``half`` stores the weights in float16 (how the shipped checkpoints are kept)."""
+        return save_slim(path, self.config, self.model, half=half)
 
 
 def load_detector(path: str | Path) -> Detector:

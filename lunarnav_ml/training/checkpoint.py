@@ -33,7 +33,9 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, torch.T
     except Exception as err:
         raise InputError(f"{path}: not a readable checkpoint ({err})") from err
     if isinstance(ckpt, dict) and ckpt.get("format") == SLIM_FORMAT:
-        return dict(ckpt["config"]), ckpt["state_dict"]
+        # weights stored in half precision come back as float32 (the model's dtype)
+        return dict(ckpt["config"]), {k: v.float() if v.is_floating_point() else v
+                                      for k, v in ckpt["state_dict"].items()}
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
         raise InputError(f"{path}: neither a Lightning checkpoint nor a slim detector file")
     hp = ckpt["hyper_parameters"]
@@ -66,12 +68,19 @@ def load_weights(model: nn.Module, path: str | Path) -> None:
     model.load_state_dict(state)
 
 
-def save_slim(path: str | Path, config: dict[str, Any], model: nn.Module) -> Path:
-    """Write a slim weights file (``config`` plus ``model``'s state dict)."""
+def save_slim(path: str | Path, config: dict[str, Any], model: nn.Module,
+              half: bool = False) -> Path:
+    """Write a slim weights file (``config`` plus ``model``'s state dict).
+
+    Args:
+        half: store floating tensors in float16 (half the size; read back as float32).
+    """
     from lunarnav_ml.utils.atomic import atomic_path
 
     path = Path(path)
     state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    if half:
+        state = {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
     with atomic_path(path) as tmp:
         torch.save({"format": SLIM_FORMAT, "config": config, "state_dict": state}, tmp)
     return path

@@ -112,8 +112,8 @@ def test_export_mish_is_mish():
                                atol=1e-6)
 
 
-def test_caller_model_left_in_train_mode(tmp_path):
-    parts = random_detector("small", img_size=64, seed=0)  # small keeps YOLOv4's Mish backbone
+def test_caller_model_left_in_train_mode(mish_parts, tmp_path):
+    parts = mish_parts
     parts.model.train()
     export_onnx(parts, tmp_path / "m.onnx", img_size=64)
     assert parts.model.training

@@ -61,3 +61,15 @@ def test_predict_rejects_bad_images(trained):
     det = load_detector(trained[0])
     with pytest.raises(InputError, match=r"images\[0\]: expected an HxWx3"):
         det.predict([np.zeros((10, 10), np.uint8)])
+
+
+def test_half_precision_slim_file(trained, tmp_path):
+    det = load_detector(trained[0])
+    full, half = det.save(tmp_path / "full.pt"), det.save(tmp_path / "half.pt", half=True)
+    assert half.stat().st_size < 0.6 * full.stat().st_size
+    again = load_detector(half)
+    assert all(p.dtype == torch.float32 for p in again.model.parameters())
+    for key, value in det.model.state_dict().items():
+        if value.is_floating_point():  # float16 keeps ~3 significant digits
+            torch.testing.assert_close(again.model.state_dict()[key], value, rtol=1e-3,
+                                       atol=1e-4)
