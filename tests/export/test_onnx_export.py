@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from lunarnav_ml.errors import ConfigError, InputError
-from lunarnav_ml.export.bench import random_detector, synthetic_frame
+from lunarnav_ml.export.bench import synthetic_frame
 from lunarnav_ml.export.onnx_export import ExportMish, export_onnx
 from lunarnav_ml.models.decode import decode, postprocess
 from lunarnav_ml.runtime import OnnxDetector

@@ -8,7 +8,7 @@ import onnx
 import pytest
 
 from lunarnav_ml.errors import ConfigError, InputError
-from lunarnav_ml.export.bench import random_detector, synthetic_frame
+from lunarnav_ml.export.bench import synthetic_frame
 from lunarnav_ml.export.onnx_export import export_onnx
 from lunarnav_ml.export.quantize import (
     fp32_tail_nodes,
