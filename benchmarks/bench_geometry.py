@@ -91,7 +91,7 @@ def print_table(name: str, metrics: dict) -> None:
           f"{'3s diam 15-20':>14} {'paper stereo':>12} {'paper lidar':>11}")
     for d, st in metrics["per_diameter"].items():
         near, allr = st["range_15_20"], st["all_ranges"]
-        key = int(round(float(d)))
+        key = round(float(d))
         fmt = lambda x: "-" if x is None else f"{x:.2f}"
         print(f"{d:>6} {near['n']:>3} {near['n_lifted']:>6} {fmt(near['center_3sigma_m']):>16} "
               f"{fmt(allr['center_3sigma_m']):>14} {fmt(near['diameter_3sigma_m']):>14} "

@@ -30,7 +30,7 @@ def test_missing_file_is_one_line_exit_2(tmp_path):
         [sys.executable, "-m", "lunarnav_ml.cli", "eval", "--gt", str(tmp_path / "nope.json"),
          "--threshold", "0.5", "--test-results", str(tmp_path / "r.json"),
          "--out", str(tmp_path / "o")],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=120, check=False,
     )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
@@ -44,7 +44,7 @@ def test_corrupt_json_names_the_file(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "lunarnav_ml.cli", "eval", "--gt", str(bad), "--threshold", "0.5",
          "--test-results", str(bad), "--out", str(tmp_path / "o")],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=120, check=False,
     )
     assert proc.returncode == 2 and "bad.json" in proc.stderr and "Traceback" not in proc.stderr
 

@@ -241,12 +241,12 @@ def far_wall_mask(
     Shape:
         resid, plane_d: (H, W) px (NaN invalid) -> (H, W).
     """
-    k = max(int(round(cfg.slope_rows * scale)), 1)
+    k = max(round(cfg.slope_rows * scale), 1)
     rising = np.zeros(resid.shape, bool)
     with np.errstate(invalid="ignore"):
         rising[k:-k] = resid[: -2 * k] - resid[2 * k :] > 0  # NaN compares False
     starts, ends, cols = column_runs(rising)
-    min_len = max(int(round(cfg.min_segment_rows * scale)), 3)
+    min_len = max(round(cfg.min_segment_rows * scale), 3)
     keep = ends - starts >= min_len
     starts, ends, cols = starts[keep], ends[keep], cols[keep]
     rise = resid[starts, cols] - resid[ends - 1, cols]

@@ -10,6 +10,7 @@ validation split, never on the test set.
 
 from __future__ import annotations
 
+import itertools
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -168,7 +169,7 @@ def pd_by(
         dtype=float,
     )
     rows = []
-    for lo, hi in zip(edges[:-1], edges[1:]):
+    for lo, hi in itertools.pairwise(edges):
         sel = (values >= lo) & (values < hi)
         n = int(sel.sum())
         det = int(match.hit[sel].sum())

@@ -73,11 +73,11 @@ def draw_overlay(
     """
     canvas = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
     for ann in gt_anns:
-        x, y, w, h = (int(round(v)) for v in ann["bbox"])
+        x, y, w, h = (round(v) for v in ann["bbox"])
         color = IGNORE_COLOR if ann.get("ignore") or ann.get("iscrowd") else GT_COLOR
         cv2.rectangle(canvas, (x, y), (x + w, y + h), color, 1)
     for det in detections:
-        x, y, w, h = (int(round(v)) for v in det["bbox"])
+        x, y, w, h = (round(v) for v in det["bbox"])
         color = CLASS_COLORS.get(det["category_id"], (255, 255, 255))
         cv2.rectangle(canvas, (x, y), (x + w, y + h), color, 2)
         label = f"{class_names.get(det['category_id'], '?')} {det['score']:.2f}"

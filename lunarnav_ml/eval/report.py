@@ -74,7 +74,7 @@ def _fold_azimuth(az: float) -> float:
 
 
 def _nan_to_none(x: float) -> float | None:
-    return None if x != x else float(x)
+    return None if np.isnan(x) else float(x)
 
 
 def write_report(metrics: dict[str, Any], out_dir: Path, title: str) -> dict[str, Path]:
@@ -98,8 +98,8 @@ def render_markdown(metrics: dict[str, Any], title: str) -> str:
         lines.append(f"| {name} | {_fmt(row['AP'])} | {_fmt(row['AP50'])} | {row['n_gt']} |")
     lines += ["", f"Operating threshold (picked on the validation split): {metrics['threshold']:.3f}",
               "", "## Crater Pd (IoU >= 0.5)", "",
-              f"- all non-ignored craters: Pd {_fmt(metrics['crater_pd_all'])} "
-              f"(n = {metrics['n_craters']})",
+              (f"- all non-ignored craters: Pd {_fmt(metrics['crater_pd_all'])} "
+              f"(n = {metrics['n_craters']})"),
               f"- false alarms per image: {metrics['false_alarms_per_image']:.3f}"]
     if "crater_pd_D5_within20m" in metrics:
         lines.append(f"- craters D >= 5 m, near rim <= 20 m: Pd {_fmt(metrics['crater_pd_D5_within20m'])}"

@@ -218,7 +218,7 @@ def _crater_mask(img: np.ndarray, box: np.ndarray, k_sigma: float) -> np.ndarray
     sigma = max(sigma, 2.0)
     dev = np.abs(img.astype(np.float32) - mu) > k_sigma * sigma
     mask = (dev & inside).astype(np.uint8) * 255
-    ksize = max(3, int(round(min(h, w) / 24)) | 1)
+    ksize = max(3, round(min(h, w) / 24) | 1)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (ksize, ksize))
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel)
     return cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)

@@ -178,7 +178,8 @@ def lift_crater(
     center, diam, rim_pts, radial_rms = sol
     c_ground = 1.0 / np.linalg.norm(plane.g) * rig.focal_px * rig.baseline_m
     rim_h = float(c_ground - 1.0 / s)
-    base = dict(n_ground=plane.n_used, n_rim=n_rim, rim_residual_px=resid, rim_height_m=rim_h)
+    base = {"n_ground": plane.n_used, "n_rim": n_rim, "rim_residual_px": resid,
+            "rim_height_m": rim_h}
     reason = _consistency(rim_h, diam, radial_rms, resid, cfg)
     if reason != "ok":
         return LiftResult(False, reason, **base)
@@ -282,7 +283,7 @@ def _rim_disparities(
     out = np.full(len(pts), np.nan)
     rows = np.arange(offsets[0], offsets[1] + 1)
     for i, (u, v) in enumerate(pts):
-        col, r = int(round(u)), np.floor(v).astype(int) + rows
+        col, r = round(u), np.floor(v).astype(int) + rows
         if not (0 <= col < w) or r[0] < 0 or r[0] >= h:
             continue
         r = r[r < h]
@@ -427,7 +428,7 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
     z = float(np.median(rover[:, 2]))
     center = np.array([rho * np.cos(phi), rho * np.sin(phi), z])
     diam = 2.0 * rho * np.sin(alpha)
-    base = dict(n_rim=n_used, rim_residual_px=rstd, rim_height_m=z)
+    base = {"n_rim": n_used, "rim_residual_px": rstd, "rim_height_m": z}
     if rstd > cfg.max_rim_residual_px:
         return LiftResult(False, "stereo_inconsistent", **base)
     cov = _tangent_covariance(rho, var[0, 0] * rho**4 * cfg.corr_factor, phi, alpha, rover, cfg,

@@ -271,7 +271,7 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     by_r: dict[int, list] = defaultdict(list)
     for r in rows:
         if np.isfinite(r["near_rim_range_m"]):
-            by_r[int(round(r["near_rim_range_m"]))].append(r)
+            by_r[round(r["near_rim_range_m"])].append(r)
     ok = [r for r in rows if r["ok"]]
     reasons: dict[str, int] = defaultdict(int)
     for r in rows:
@@ -305,22 +305,22 @@ def markdown_table(metrics: dict[str, Any]) -> str:
     """The 3-sigma table beside the paper's stereo and lidar tables, plus timing and reasons."""
     lines = [
         "# Crater geometry: 3D center and diameter from one stereo pair", "",
-        f"Ellipse source: `{metrics['settings']['ellipse_source']}`; images: "
-        f"{metrics['settings']['n_images']}; 3σ = 3 × RMS error (bias included).", "",
-        "| D (m) | n (15–20 m) | lifted | 3σ center 15–20 m (m) | 3σ center all (m) "
-        "| 3σ diameter 15–20 m (m) | paper stereo 3σ | paper lidar 3σ |",
+        (f"Ellipse source: `{metrics['settings']['ellipse_source']}`; images: "
+        f"{metrics['settings']['n_images']}; 3σ = 3 × RMS error (bias included)."), "",
+        ("| D (m) | n (15–20 m) | lifted | 3σ center 15–20 m (m) | 3σ center all (m) "
+        "| 3σ diameter 15–20 m (m) | paper stereo 3σ | paper lidar 3σ |"),
         "|---|---|---|---|---|---|---|---|",
     ]
     for d, st in metrics["per_diameter"].items():
         near, allr = st["range_15_20"], st["all_ranges"]
-        key = int(round(float(d)))
+        key = round(float(d))
         lines.append(
             f"| {d} | {near['n']} | {near['n_lifted']} | {_fmt(near['center_3sigma_m'])} "
             f"| {_fmt(allr['center_3sigma_m'])} | {_fmt(near['diameter_3sigma_m'])} "
             f"| {_fmt(PAPER_STEREO_3SIGMA_M.get(key))} | {_fmt(PAPER_LIDAR_3SIGMA_M.get(key))} |")
     t = metrics["time_per_crater_ms"]
-    lines += ["", f"Time per crater (1 core): fit {_fmt(t['fit'], 1)} ms, lift "
-              f"{_fmt(t['lift'], 1)} ms; SGBM {_fmt(t['stereo_per_image'], 0)} ms per image.", "",
+    lines += ["", (f"Time per crater (1 core): fit {_fmt(t['fit'], 1)} ms, lift "
+              f"{_fmt(t['lift'], 1)} ms; SGBM {_fmt(t['stereo_per_image'], 0)} ms per image."), "",
               "Pd(3D) vs near-rim range (m): " + ", ".join(
                   f"{k}: {_fmt(v)}" for k, v in metrics["pd_3d_vs_range"].items()), "",
               "Outcomes: " + ", ".join(f"{k} {v}" for k, v in sorted(metrics["reasons"].items()))]

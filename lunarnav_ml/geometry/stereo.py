@@ -91,11 +91,12 @@ def compute_disparity(
     if l_img.shape != r_img.shape:
         raise InputError(f"right: shape {r_img.shape} differs from left {l_img.shape}")
     if rows is not None:
-        return _on_rows(l_img, r_img, rows, dict(
-            num_disparities=num_disparities, min_disparity=min_disparity, block_size=block_size,
-            uniqueness_ratio=uniqueness_ratio, lr_max_diff_px=lr_max_diff_px,
-            speckle_window=speckle_window, speckle_range=speckle_range, mode=mode,
-            min_texture=min_texture))
+        return _on_rows(l_img, r_img, rows, {
+            "num_disparities": num_disparities, "min_disparity": min_disparity,
+            "block_size": block_size,
+            "uniqueness_ratio": uniqueness_ratio, "lr_max_diff_px": lr_max_diff_px,
+            "speckle_window": speckle_window, "speckle_range": speckle_range, "mode": mode,
+            "min_texture": min_texture})
     if block_size < 1 or block_size % 2 == 0:
         raise InputError(f"block_size: must be odd and >= 1, got {block_size}")
     if mode not in SGBM_MODES:

@@ -128,8 +128,17 @@ def load_detector(path: str | Path) -> Detector:
     except RuntimeError as err:
         raise InputError(f"{path}: weights do not match preset {config['preset']!r}: {err}"
                          ) from err
-    names = config.get("class_names") or [f"class{i + 1}" for i in range(config["num_classes"])]
+    names = config.get("class_names") or _default_names(config["num_classes"])
     return Detector(model, config["img_size"], names, config["preset"])
+
+
+def _default_names(num_classes: int) -> list[str]:
+    """The names :class:`DetectorModule` trains with when none are given."""
+    from lunarnav_ml.data.coco import CLASS_NAMES
+
+    if num_classes <= len(CLASS_NAMES):
+        return list(CLASS_NAMES[:num_classes])
+    return [f"class{i + 1}" for i in range(num_classes)]
 
 
 def fit_detector(train_ann: str | Path | list, val_ann: str | Path, out_dir: str | Path, *,

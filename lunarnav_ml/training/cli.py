@@ -7,7 +7,7 @@ from pathlib import Path
 
 from lunarnav_ml.errors import ConfigError
 
-DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "nano.pt"
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -69,6 +69,9 @@ class DetectorModule(L.LightningModule):
         if len(class_names) != num_classes:
             raise ConfigError(f"class_names has {len(class_names)} names for {num_classes} classes")
         self.save_hyperparameters()
+        # LightningCLI hands the parsed config to save_hyperparameters (class_names: null);
+        # checkpoints keep the names actually used
+        self.hparams.class_names = class_names
         self.model = build_model(preset, num_classes, anchors)
         self.ema = ModelEMA(self.model, ema_decay, ema_tau)
         self.loss = YOLOLoss(num_classes, anchor_iou_thresh, ignore_thresh, label_smoothing,

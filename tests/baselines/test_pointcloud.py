@@ -25,7 +25,7 @@ def test_finite_cloud_drops_nan_rows_and_checks_shape():
 def test_ransac_plane_with_outliers():
     pts = _plane_cloud()
     outliers = np.random.default_rng(1).uniform(-10, 10, (600, 3))
-    n, c, inl = pc.fit_plane_ransac(np.vstack([pts, outliers]))
+    n, _c, inl = pc.fit_plane_ransac(np.vstack([pts, outliers]))
     truth = np.array([-0.1, 0.05, 1.0]) / np.linalg.norm([-0.1, 0.05, 1.0])
     assert n @ truth > 0.9999
     assert inl[:3000].mean() > 0.99

@@ -122,7 +122,7 @@ def test_rectify_images_shapes_and_size_check(pcam_rect):
 
 
 def test_bad_inputs_raise_input_error():
-    left, right = change_pcam_pair(3)
+    left, _right = change_pcam_pair(3)
     with pytest.raises(InputError, match="points"):
         cahv_project(left, np.zeros((4, 2)))
     with pytest.raises(InputError, match="uv"):

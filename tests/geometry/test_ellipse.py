@@ -75,7 +75,7 @@ def _synthetic_crater(shadow_frac: float = 0.45) -> tuple[np.ndarray, Ellipse]:
     mask = np.zeros(img.shape, np.uint8)
     cv2.ellipse(mask, ((ell.cx, ell.cy), (2 * ell.a, 2 * ell.b), ell.angle_deg), 255, -1)
     inside = mask > 0
-    vv, uu = np.mgrid[0:240, 0:320]
+    _vv, uu = np.mgrid[0:240, 0:320]
     shadow = inside & (uu < ell.cx - ell.a + 2 * ell.a * shadow_frac)
     lit = inside & ~shadow & (uu < ell.cx + 0.6 * ell.a)  # the last stretch looks like terrain
     img[shadow] = 15 + 0.2 * img[shadow]

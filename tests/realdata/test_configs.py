@@ -55,7 +55,7 @@ def test_recipe_instantiates(config, tmp_path, monkeypatch):
     data = cli.datamodule
     assert cli.model.hparams.img_size == data.img_size
     if config.stem == "finetune":
-        assert cli.model.hparams.init_from and cli.model.hparams.freeze_backbone
+        assert cli.model.hparams.init_from and not cli.model.hparams.freeze_backbone
     if config.stem == "mixed":
         assert len(data.train_files) == 2 and data.weights == [0.7, 0.3]
     if config.stem == "real_only":

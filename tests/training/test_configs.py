@@ -27,6 +27,7 @@ def test_every_config_instantiates(config, tiny_coco, tmp_path, monkeypatch):
     assert isinstance(cli.model, DetectorModule) and isinstance(cli.datamodule,
                                                                  DetectionDataModule)
     assert cli.model.hparams.img_size == cli.datamodule.img_size
+    assert cli.model.hparams.class_names == ["crater", "rock", "artifact"]  # kept in checkpoints
 
 
 def test_cli_fast_dev_run(tiny_coco, tmp_path, monkeypatch):
