@@ -21,6 +21,12 @@ CLASS_NAMES = ("crater", "rock", "artifact")  # category ids 1, 2, 3
 BOX_TOLERANCE_PX = 1.0  # a box may overhang its image by this much (rounding), no more
 
 
+def default_class_names(num_classes: int) -> list[str]:
+    """Names of category ids 1..K when none are given: ours, then ``class<k>`` beyond them."""
+    return [CLASS_NAMES[k] if k < len(CLASS_NAMES) else f"class{k + 1}"
+            for k in range(num_classes)]
+
+
 @dataclass
 class ImageRecord:
     """One image and its boxes, validated."""

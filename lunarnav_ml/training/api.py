@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from lunarnav_ml.data.coco import default_class_names
 from lunarnav_ml.data.letterbox import LetterboxInfo, letterbox
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.models import YOLO, build_model, decode, postprocess
@@ -128,17 +129,9 @@ def load_detector(path: str | Path) -> Detector:
     except RuntimeError as err:
         raise InputError(f"{path}: weights do not match preset {config['preset']!r}: {err}"
                          ) from err
-    names = config.get("class_names") or _default_names(config["num_classes"])
+    # checkpoints from before the module recorded its names trained with the defaults
+    names = config.get("class_names") or default_class_names(config["num_classes"])
     return Detector(model, config["img_size"], names, config["preset"])
-
-
-def _default_names(num_classes: int) -> list[str]:
-    """The names :class:`DetectorModule` trains with when none are given."""
-    from lunarnav_ml.data.coco import CLASS_NAMES
-
-    if num_classes <= len(CLASS_NAMES):
-        return list(CLASS_NAMES[:num_classes])
-    return [f"class{i + 1}" for i in range(num_classes)]
 
 
 def fit_detector(train_ann: str | Path | list, val_ann: str | Path, out_dir: str | Path, *,

@@ -78,9 +78,8 @@ def save_slim(path: str | Path, config: dict[str, Any], model: nn.Module,
     from lunarnav_ml.utils.atomic import atomic_path
 
     path = Path(path)
-    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
-    if half:
-        state = {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
+    state = {k: (v.half() if half and v.is_floating_point() else v).detach().cpu().clone()
+             for k, v in model.state_dict().items()}
     with atomic_path(path) as tmp:
         torch.save({"format": SLIM_FORMAT, "config": config, "state_dict": state}, tmp)
     return path

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lunarnav_ml.data.coco import CLASS_NAMES
+from lunarnav_ml.data.coco import default_class_names
 from lunarnav_ml.data.letterbox import LetterboxInfo
 from lunarnav_ml.errors import ConfigError
 from lunarnav_ml.losses import YOLOLoss
@@ -65,7 +65,7 @@ class DetectorModule(L.LightningModule):
         super().__init__()
         if optimizer not in ("adamw", "sgd"):
             raise ConfigError(f"optimizer must be 'adamw' or 'sgd', got {optimizer!r}")
-        class_names = list(class_names or CLASS_NAMES[:num_classes])
+        class_names = list(class_names or default_class_names(num_classes))
         if len(class_names) != num_classes:
             raise ConfigError(f"class_names has {len(class_names)} names for {num_classes} classes")
         self.save_hyperparameters()

@@ -6,6 +6,7 @@ import torch
 
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.training.api import load_detector
+from lunarnav_ml.training.checkpoint import save_slim
 
 
 def test_fit_detector_writes_best_checkpoint_and_logs(trained):
@@ -73,3 +74,9 @@ def test_half_precision_slim_file(trained, tmp_path):
         if value.is_floating_point():  # float16 keeps ~3 significant digits
             torch.testing.assert_close(again.model.state_dict()[key], value, rtol=1e-3,
                                        atol=1e-4)
+
+
+def test_checkpoint_without_names_gets_the_training_defaults(trained, tmp_path):
+    det = load_detector(trained[0])
+    path = save_slim(tmp_path / "old.pt", {**det.config, "class_names": None}, det.model)
+    assert load_detector(path).class_names == ["crater", "rock", "artifact"]
