@@ -29,7 +29,7 @@ from lunarnav_ml.eval.coco_metrics import check_results, coco_ap, coco_from_dict
 from lunarnav_ml.eval.plots import draw_overlay
 from lunarnav_ml.realdata.sources import UNKNOWN_CAMERA
 from lunarnav_ml.utils import atomic
-from lunarnav_ml.utils.images import read_rgb
+from lunarnav_ml.utils.images import caption_tile, contact_sheet, read_rgb
 
 BUDGETS = (1, 3, 5, 10)  # top-scoring detections kept per image and class
 IOU_THRESHOLD = 0.5
@@ -186,23 +186,8 @@ def draw_gallery(gt: dict[str, Any], results: list[dict[str, Any]], root: Path, 
         bgr = cv2.cvtColor(read_rgb(Path(root) / img["file_name"]), cv2.COLOR_RGB2BGR)
         overlay = draw_overlay(bgr, anns, top, names)
         caption = f"{img.get('camera_name', UNKNOWN_CAMERA)}  {img.get('source_name', '')}"
-        tiles.append(_tile(overlay, tile, caption[:48]))
-    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % cols)
-    rows = [np.hstack(tiles[i:i + cols]) for i in range(0, len(tiles), cols)]
-    return atomic.write_image(path, np.vstack(rows))
-
-
-def _tile(image: np.ndarray, side: int, caption: str) -> np.ndarray:
-    """Fit ``image`` into a ``side`` x ``side`` black tile with a caption strip on top."""
-    strip = 18
-    scale = min(side / image.shape[1], (side - strip) / image.shape[0])
-    size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
-    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    canvas = np.zeros((side, side, 3), np.uint8)
-    canvas[strip:strip + size[1], :size[0]] = small
-    cv2.putText(canvas, caption, (3, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
-                cv2.LINE_AA)
-    return canvas
+        tiles.append(caption_tile(overlay, tile, caption[:48]))
+    return atomic.write_image(path, contact_sheet(tiles, cols))
 
 
 def write_transfer_report(gt: dict[str, Any], results: list[dict[str, Any]], root: Path,

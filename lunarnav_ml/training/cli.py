@@ -21,8 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser(
         "detect", help="detect craters, rocks and artifacts in an image or a folder",
-        description="Writes results.json (COCO results), images.json (image ids) and overlay "
-                    "images under --out.")
+        description="Writes results.json (COCO results), images.json (image ids), overlay "
+                    "images and a gallery.png contact sheet under --out.")
     p.add_argument("source", type=Path, help="image file or folder of images")
     p.add_argument("--weights", type=Path, default=None,
                    help=f"checkpoint (.ckpt) or slim weights (.pt); default {DEFAULT_WEIGHTS}")
@@ -31,6 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--iou", type=float, default=0.6, help="NMS IoU threshold")
     p.add_argument("--overlay-conf", type=float, default=0.25, help="score threshold drawn")
     p.add_argument("--batch", type=int, default=8, help="images per forward pass")
+    p.add_argument("--gallery", type=int, default=12,
+                   help="overlays in gallery.png, spread over the images (0: no gallery)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_detect)
 
@@ -54,6 +56,8 @@ def run_detect(args: argparse.Namespace) -> int:
                               f"got {getattr(args, name)}")
     if args.batch < 1:
         raise ConfigError(f"--batch must be >= 1, got {args.batch}")
+    if args.gallery < 0:
+        raise ConfigError(f"--gallery must be >= 0, got {args.gallery}")
     weights = args.weights or DEFAULT_WEIGHTS
     if args.weights is None and not weights.is_file():
         raise ConfigError(f"no --weights given and no shipped weights at {weights}")
@@ -61,7 +65,7 @@ def run_detect(args: argparse.Namespace) -> int:
     detector = load_detector(weights)
     out = detect_files(detector, files, args.out, conf_thres=args.conf, iou_thres=args.iou,
                        overlay_thres=args.overlay_conf, batch=args.batch,
-                       progress=not args.quiet)
+                       progress=not args.quiet, gallery=args.gallery)
     print(f"lunarnav detect: {len(out['results'])} detections on {len(files)} images -> "
           f"{args.out / 'results.json'}")
     return 0

@@ -12,7 +12,7 @@ from tqdm import tqdm
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.training.api import Detector
 from lunarnav_ml.utils import atomic
-from lunarnav_ml.utils.images import IMAGE_SUFFIXES, read_rgb
+from lunarnav_ml.utils.images import IMAGE_SUFFIXES, caption_tile, contact_sheet, read_rgb
 
 CLASS_COLORS_BGR = ((0, 200, 255), (255, 160, 0), (60, 60, 255))  # crater, rock, artifact
 
@@ -46,16 +46,25 @@ def draw_overlay(image: np.ndarray, pred: dict[str, np.ndarray], class_names: li
     return out
 
 
+def gallery_indices(n_files: int, n: int) -> set[int]:
+    """``n`` indices spread evenly over ``n_files`` files (all of them when there are fewer)."""
+    if n <= 0 or n_files == 0:
+        return set()
+    return {int(i) for i in np.linspace(0, n_files - 1, min(n, n_files)).round()}
+
+
 def detect_files(detector: Detector, files: list[Path], out_dir: Path, *, conf_thres: float,
-                 iou_thres: float, overlay_thres: float, batch: int = 8, progress: bool = True
-                 ) -> dict[str, Any]:
+                 iou_thres: float, overlay_thres: float, batch: int = 8, progress: bool = True,
+                 gallery: int = 12) -> dict[str, Any]:
     """Detect on image files; write ``results.json`` (COCO results), ``images.json`` (ids to
-    files) and ``overlays/<stem>.jpg`` under ``out_dir``.
+    files), ``overlays/<stem>.jpg`` and, when ``gallery`` > 0, ``gallery.png`` (a contact sheet
+    of up to ``gallery`` overlays spread over the files) under ``out_dir``.
 
     Returns:
         ``{"images": [...], "results": [...]}`` as written.
     """
     images_meta, results = [], []
+    in_gallery, tiles = gallery_indices(len(files), gallery), []
     bar = tqdm(total=len(files), desc="detect", unit="img", disable=not progress)
     for start in range(0, len(files), batch):
         chunk = files[start:start + batch]
@@ -66,10 +75,14 @@ def detect_files(detector: Detector, files: list[Path], out_dir: Path, *, conf_t
         for image_id, path, image, pred in zip(ids, chunk, rgb, preds):
             images_meta.append({"id": image_id, "file_name": str(path),
                                 "width": image.shape[1], "height": image.shape[0]})
-            atomic.write_image(out_dir / "overlays" / f"{path.stem}.jpg",
-                               draw_overlay(image, pred, detector.class_names, overlay_thres))
+            overlay = draw_overlay(image, pred, detector.class_names, overlay_thres)
+            atomic.write_image(out_dir / "overlays" / f"{path.stem}.jpg", overlay)
+            if image_id - 1 in in_gallery:
+                tiles.append(caption_tile(overlay, 320, path.name[:48]))
         bar.update(len(chunk))
     bar.close()
+    if tiles:
+        atomic.write_image(out_dir / "gallery.png", contact_sheet(tiles))
     atomic.write_json(out_dir / "results.json", results, indent=None)
     atomic.write_json(out_dir / "images.json", images_meta)
     return {"images": images_meta, "results": results}

@@ -20,3 +20,24 @@ def read_rgb(path: str | Path) -> np.ndarray:
     if image is None:
         raise InputError(f"{path}: not a readable image (corrupt or unknown format)")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def caption_tile(image: np.ndarray, side: int, caption: str) -> np.ndarray:
+    """Fit a BGR ``image`` into a ``side`` x ``side`` black tile with a caption strip on top."""
+    strip = 18
+    scale = min(side / image.shape[1], (side - strip) / image.shape[0])
+    size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    canvas = np.zeros((side, side, 3), np.uint8)
+    canvas[strip:strip + size[1], :size[0]] = small
+    cv2.putText(canvas, caption, (3, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    return canvas
+
+
+def contact_sheet(tiles: list[np.ndarray], cols: int = 4) -> np.ndarray:
+    """Equal-sized tiles in a grid of ``cols`` columns (the last row padded with black)."""
+    if not tiles:
+        raise ValueError("contact_sheet needs at least one tile")
+    tiles = tiles + [np.zeros_like(tiles[0])] * (-len(tiles) % cols)
+    return np.vstack([np.hstack(tiles[i:i + cols]) for i in range(0, len(tiles), cols)])

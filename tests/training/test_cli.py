@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lunarnav_ml.errors import ConfigError, InputError
-from lunarnav_ml.training import cli
+from lunarnav_ml.training import cli, detect
 
 
 def _parser():
@@ -30,6 +30,30 @@ def test_detect_folder_writes_results_and_overlays(weights, tiny_coco, tmp_path)
     assert len(images) == 8 and len(list((tmp_path / "overlays").glob("*.jpg"))) == 8
     assert results and {r["image_id"] for r in results} <= {i["id"] for i in images}
     assert set(results[0]) == {"image_id", "category_id", "bbox", "score"}
+    sheet = cv2.imread(str(tmp_path / "gallery.png"))
+    assert sheet.shape == (2 * 320, 4 * 320, 3)  # 8 images: two rows of four tiles
+
+
+def test_detect_gallery_size_and_off(weights, tiny_coco, tmp_path):
+    folder = tiny_coco["val"].parent / "images" / "left"
+    args = _parser().parse_args(["detect", str(folder), "--weights", str(weights), "--out",
+                                 str(tmp_path / "a"), "--quiet", "--gallery", "3"])
+    assert args.func(args) == 0
+    assert cv2.imread(str(tmp_path / "a" / "gallery.png")).shape == (320, 4 * 320, 3)
+    args = _parser().parse_args(["detect", str(folder), "--weights", str(weights), "--out",
+                                 str(tmp_path / "b"), "--quiet", "--gallery", "0"])
+    assert args.func(args) == 0
+    assert not (tmp_path / "b" / "gallery.png").exists()
+    args = _parser().parse_args(["detect", str(folder), "--weights", str(weights), "--gallery",
+                                 "-1"])
+    with pytest.raises(ConfigError, match="--gallery must be >= 0"):
+        args.func(args)
+
+
+def test_gallery_indices_spread_over_files():
+    assert detect.gallery_indices(100, 5) == {0, 25, 50, 74, 99}
+    assert detect.gallery_indices(3, 12) == {0, 1, 2}
+    assert detect.gallery_indices(10, 0) == set() and detect.gallery_indices(0, 4) == set()
 
 
 def test_detect_bad_inputs(weights, tmp_path):
