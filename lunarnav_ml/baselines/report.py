@@ -27,6 +27,7 @@ import numpy as np
 from lunarnav_ml.baselines.lidar import LidarConfig, MapCrater, detect_craters_lidar
 from lunarnav_ml.baselines.stereo import StereoConfig, detect_craters_stereo
 from lunarnav_ml.errors import InputError
+from lunarnav_ml.eval.spread import horizontal_spread
 from lunarnav_ml.geometry.frames import camera_to_rover
 from lunarnav_ml.utils import atomic
 
@@ -354,14 +355,7 @@ def _pd_rows(records: list[dict]) -> list[dict[str, Any]]:
 
 def _spread(sel: list[dict]) -> dict[str, Any]:
     """Horizontal error spread: sigma about the mean vector and rms about zero, m."""
-    if len(sel) < 2:
-        return {"n": len(sel), "sigma_m": None, "rms_m": None, "three_sigma_m": None,
-                "three_rms_m": None, "bias_m": None}
-    e = np.array([[r["dx"], r["dy"]] for r in sel])
-    sigma = float(np.sqrt(np.mean(np.sum((e - e.mean(axis=0)) ** 2, axis=1))))
-    rms = float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
-    return {"n": len(sel), "sigma_m": sigma, "rms_m": rms, "three_sigma_m": 3 * sigma,
-            "three_rms_m": 3 * rms, "bias_m": [float(x) for x in e.mean(axis=0)]}
+    return horizontal_spread(np.array([[r["dx"], r["dy"]] for r in sel]))
 
 
 def write_baseline_report(metrics: dict[str, Any], out_dir: Path) -> dict[str, Path]:

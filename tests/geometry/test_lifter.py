@@ -3,7 +3,7 @@ import pytest
 
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.geometry.ellipse import Ellipse, fit_crater_ellipse
-from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater
+from lunarnav_ml.geometry.lifter import LifterConfig, _crest_row, _rim_disparities, lift_crater
 from lunarnav_ml.geometry.stereo import SGBMStereo
 
 
@@ -19,7 +19,9 @@ def sgbm_disparity(crater_scene):
 @pytest.mark.parametrize("method", ["tangent", "plane"])
 def test_exact_inputs_recover_center_and_diameter(crater_scene, method):
     sc = crater_scene
-    res = lift_crater(sc.ellipse, _true_disparity(sc), sc.rig, LifterConfig(method=method))
+    # the helper's rim is a sharp crest: its occluding edge is the crest itself
+    res = lift_crater(sc.ellipse, _true_disparity(sc), sc.rig,
+                      LifterConfig(method=method, rim_offset=0.0))
     assert res.ok, res.reason
     np.testing.assert_allclose(res.center_m, sc.center_rover, atol=0.05)
     assert res.diameter_m == pytest.approx(sc.crater.diameter, abs=0.05)
@@ -102,3 +104,42 @@ def test_lifter_bad_inputs(crater_scene):
         lift_crater(crater_scene.ellipse, np.zeros(10), crater_scene.rig)
     with pytest.raises(InputError, match="method"):
         lift_crater(crater_scene.ellipse, np.ones((5, 5)), crater_scene.rig, LifterConfig(method="x"))
+
+
+def test_crest_row_snaps_to_the_occluding_edge():
+    """Far wall (5 px) above row 50, the crest and outer flank (9 px, growing) below it."""
+    rows = np.arange(100, dtype=float)
+    column = np.where(rows < 50, 5.0, 9.0 + 0.1 * (rows - 50))
+    assert _crest_row(column, 53.2, snap_px=6, min_jump=0.08) == pytest.approx(49.5)
+    assert _crest_row(column, 46.0, snap_px=6, min_jump=0.08) == pytest.approx(49.5)
+    # out of reach, or no jump at all (plain ground): the row stays
+    assert _crest_row(column, 60.0, snap_px=6, min_jump=0.08) == 60.0
+    assert _crest_row(9.0 + 0.1 * rows, 53.2, snap_px=6, min_jump=0.08) == 53.2
+    # invalid rows between the two surfaces do not hide the jump
+    column[49:51] = np.nan
+    assert _crest_row(column, 53.0, snap_px=6, min_jump=0.08) == pytest.approx(50.5)
+
+
+def test_snapped_rim_disparities_read_the_crest_not_the_flank():
+    h = 120
+    rows = np.arange(h, dtype=float)[:, None]
+    disp = np.where(rows < 50, 5.0, 9.0 + 0.1 * (rows - 50)) * np.ones((h, 40))
+    pts = np.array([[20.0, 55.0], [21.0, 55.0]])
+    d0, r0 = _rim_disparities(disp, pts)
+    d6, r6 = _rim_disparities(disp, pts, snap_px=6)
+    np.testing.assert_allclose(d0, 9.5, atol=1e-9)  # the flank at row 55
+    np.testing.assert_allclose(r6, 49.5)
+    np.testing.assert_allclose(d6, 8.95, atol=1e-9)  # the flank line carried to the edge
+    np.testing.assert_allclose(r0, 55.0)
+
+
+def test_rim_offset_moves_the_center_away_by_about_the_offset(crater_scene):
+    """The occluding edge in front of the crest by k R: the center moves ~k R / (1 - R / rho)."""
+    sc = crater_scene
+    disp = _true_disparity(sc)
+    sharp = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.0))
+    rounded = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.06))
+    assert sharp.ok and rounded.ok
+    rho = np.hypot(*sharp.center_m[:2])
+    expected = 0.06 * sc.crater.radius / (1 - sc.crater.radius / rho)
+    assert np.hypot(*rounded.center_m[:2]) - rho == pytest.approx(expected, rel=0.3)

@@ -68,10 +68,14 @@ def test_report_bad_inputs(tmp_path, dataset):
 
 def test_summarize_three_sigma_known_answer():
     rows = [{"diameter_m": 5.0, "near_rim_range_m": 16.0, "ok": True, "reason": "ok",
-             "center_err_m": e, "diameter_err_m": -e, "sigma_h_m": 0.5} for e in (0.3, 0.4, 1.4)]
+             "center_err_m": e, "center_err_xy_m": [e, 0.0], "diameter_err_m": -e,
+             "sigma_h_m": 0.5} for e in (0.3, 0.4, 1.4)]
     rows.append({"diameter_m": 5.0, "near_rim_range_m": 9.0, "ok": False, "reason": "lift:x"})
     m = summarize(rows)
     near = m["per_diameter"]["5.0"]["range_15_20"]
     assert near["n"] == 3 and near["n_lifted"] == 3
     assert near["center_3sigma_m"] == pytest.approx(3 * np.sqrt((0.09 + 0.16 + 1.96) / 3))
+    # the paper's sigma_p: spread about the mean error vector (0.7, 0)
+    assert near["center_3sigma_paper_m"] == pytest.approx(
+        3 * np.sqrt((0.16 + 0.09 + 0.49) / 3))
     assert near["pd_3d"] == pytest.approx(2 / 3)  # 1.4 m > max(1 m, 0.25 D = 1.25 m): a miss
