@@ -136,3 +136,22 @@ def test_fitter_bad_input_raises():
         fit_crater_ellipse(np.zeros((4, 10, 10)), [1, 2, 3, 4])
     with pytest.raises(InputError, match="box_xywh"):
         fit_crater_ellipse(np.zeros((10, 10), np.uint8), [1, 2, np.nan, 4])
+
+
+def test_fitter_falls_back_to_the_box_where_edges_give_no_rim():
+    flat = np.full((100, 100), 90, np.uint8)
+    fit = EllipseFitter()(flat, [20, 20, 40, 20])
+    assert fit.ok and fit.reason == "box_fallback" and fit.quality == 0.0
+    np.testing.assert_allclose(fit.ellipse.to_array(), [40.0, 30.0, 20.0, 10.0, 0.0])
+    # turned off: the fit's own failure; outside the image: never a fallback
+    assert EllipseFitter(box_fallback_quality=0.0)(flat, [20, 20, 40, 20]).reason == "low_contrast"
+    assert not EllipseFitter()(flat, [200, 200, 40, 20]).ok
+
+
+def test_fitter_keeps_a_well_supported_fit(crater_scene_side_sun):
+    sc = crater_scene_side_sun
+    own = fit_crater_ellipse(sc.left, sc.box)
+    assert own.quality >= EllipseFitter().box_fallback_quality
+    fit = EllipseFitter()(sc.left, sc.box)
+    assert fit.reason == "ok"
+    np.testing.assert_allclose(fit.ellipse.to_array(), own.ellipse.to_array())
