@@ -87,8 +87,9 @@ class LifterConfig:
             this fraction of its half height (negative: the sides too; the far rim borders
             the often shadowed inner wall and a depth edge, so it is left out).
         snap_px: "tangent" moves each near-rim sample to the occluding crest edge (the
-            disparity jump from the far wall to the crest) found within this many rows;
-            0 keeps the ellipse's own rows.
+            disparity jump from the far wall to the crest) found within this many rows, and
+            within half the ellipse's height (clear of a small crater's far rim and of nearer
+            rocks below it); 0 keeps the ellipse's own rows.
         rim_offset: "tangent": the near rim's occluding edge lies this fraction of the radius
             in front of the rim crest (a rounded rim seen from a rover's height grazes the
             line of sight on its outer flank). 0.06: the median over the target craters of a
@@ -325,7 +326,7 @@ def _rim_disparities(
 
 def _crest_row(column: np.ndarray, v: float, snap_px: int, min_jump: float) -> float:
     """Row of the occluding crest edge within ``snap_px`` of ``v`` (``v`` when none is found):
-    the last row above the largest relative disparity increase going down the column."""
+    the boundary above the largest relative disparity increase going down the column."""
     lo, hi = max(int(np.floor(v)) - snap_px, 0), min(int(np.floor(v)) + snap_px + 2, len(column))
     seg = column[lo:hi]
     if len(seg) < 3:
@@ -455,7 +456,9 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
         return LiftResult(False, "degenerate_circle")
     _, y, _, h = ell.bbox()
     near = pts[:, 1] - (y + h / 2) > cfg.tri_side * h / 2
-    d, rows = _rim_disparities(disp, pts[near], snap_px=cfg.snap_px)
+    # the search stays within half the ellipse's height: clear of the far rim, and of nearer
+    # rocks and rims below a small crater
+    d, rows = _rim_disparities(disp, pts[near], snap_px=min(cfg.snap_px, max(2, int(0.5 * h))))
     ok = np.isfinite(d) & (d > 0)
     if ok.sum() < cfg.min_rim:
         return LiftResult(False, "insufficient_rim_disparity", n_rim=int(ok.sum()))
