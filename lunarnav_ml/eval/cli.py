@@ -92,7 +92,8 @@ def run_geometry(args: argparse.Namespace) -> int:
     from lunarnav_ml.geometry.report import geometry_report
 
     detections = load_json(args.test_results, "detections") if args.test_results else None
-    summary = geometry_report(Path(args.test_gt), args.out, detections=detections)
+    summary = geometry_report(Path(args.test_gt), args.out, detections=detections,
+                              ellipse_source=args.ellipse_source, disparity=args.disparity)
     print(json.dumps(summary.get("summary", summary), indent=1, default=str)[:2000])
     return 0
 
@@ -170,6 +171,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="false alarms per image allowed at the operating threshold")
     p.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     p.add_argument("--overlays", type=int, default=12, help="overlay images to write")
+    p.add_argument("--ellipse-source", choices=("fit", "label", "box"), default="fit",
+                   help="(geometry) the fitted ellipse, the labelled one (isolates stereo + "
+                        "lifter) or the box's inscribed one")
+    p.add_argument("--disparity", choices=("sgbm", "rendered"), default="sgbm",
+                   help="(geometry) SGBM on the pair, or the dataset's rendered disparity "
+                        "(isolates the lifter)")
     p.add_argument("--out", type=Path, default=Path("outputs/eval"))
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_dispatch)

@@ -39,6 +39,7 @@ PAPER_LIDAR_3SIGMA_M = {5: 0.28, 10: 1.04, 15: 1.77, 20: 1.94}
 KPP_M = 2.0  # 3-sigma position and diameter error for 5 m craters at 15 m
 NEAR_RANGE_M = (15.0, 20.0)  # the paper's window for its 3-sigma tables
 ELLIPSE_SOURCES = ("fit", "label", "box")
+DISPARITY_SOURCES = ("sgbm", "rendered")
 
 
 def geometry_report(
@@ -48,6 +49,7 @@ def geometry_report(
     detections: str | Path | list[dict[str, Any]] | None = None,
     score_threshold: float = 0.0,
     ellipse_source: str = "fit",
+    disparity: str = "sgbm",
     min_diameter_m: float = 4.5,
     max_images: int | None = None,
     stereo: SGBMStereo | None = None,
@@ -65,6 +67,8 @@ def geometry_report(
         score_threshold: detections below this score are ignored.
         ellipse_source: "fit" (the ellipse fitter in the box), "label" (the labelled ellipse:
             isolates stereo + lift) or "box" (the ellipse inscribed in the box).
+        disparity: "sgbm" (the matcher on the pair) or "rendered" (the dataset's own
+            ``disparity_file`` of each image: isolates the lifter from the matcher).
         min_diameter_m: smaller labelled craters are not evaluated.
         max_images: evaluate only the first N stereo images.
         stereo, lifter, fitter: settings (defaults: SGBM sized to the image, LifterConfig(),
@@ -79,6 +83,8 @@ def geometry_report(
     """
     if ellipse_source not in ELLIPSE_SOURCES:
         raise InputError(f"ellipse_source: expected one of {ELLIPSE_SOURCES}, got {ellipse_source!r}")
+    if disparity not in DISPARITY_SOURCES:
+        raise InputError(f"disparity: expected one of {DISPARITY_SOURCES}, got {disparity!r}")
     ann_path = _annotations_path(dataset_dir)
     coco = json.loads(ann_path.read_text())
     images = [im for im in coco.get("images", []) if im.get("right_file") and im.get("camera")]
@@ -90,7 +96,8 @@ def geometry_report(
     for ann in coco.get("annotations", []):
         if _evaluated(ann, min_diameter_m):
             by_image[ann["image_id"]].append(ann)
-    settings = _Settings(stereo, lifter or LifterConfig(), fitter or EllipseFitter(), ellipse_source)
+    settings = _Settings(stereo, lifter or LifterConfig(), fitter or EllipseFitter(), ellipse_source,
+                         disparity)
     rows: list[dict[str, Any]] = []
     for im in images:
         if by_image.get(im["id"]):
@@ -98,6 +105,7 @@ def geometry_report(
                                     settings))
     metrics = summarize(rows)
     metrics["settings"] = {"dataset": str(ann_path), "ellipse_source": ellipse_source,
+                           "disparity": disparity,
                            "detections": None if detections is None else "coco_results",
                            "score_threshold": score_threshold, "min_diameter_m": min_diameter_m,
                            "n_images": len(images)}
@@ -107,8 +115,9 @@ def geometry_report(
 
 class _Settings:
     def __init__(self, stereo: SGBMStereo | None, lifter: LifterConfig, fitter: EllipseFitter,
-                 source: str) -> None:
+                 source: str, disparity: str) -> None:
         self.stereo, self.lifter, self.fitter, self.source = stereo, lifter, fitter, source
+        self.disparity = disparity
 
 
 def _annotations_path(dataset_dir: str | Path) -> Path:
@@ -149,6 +158,16 @@ def _read_gray(root: Path, rel: str) -> np.ndarray:
     return img
 
 
+def _read_disparity(root: Path, im: dict[str, Any]) -> np.ndarray:
+    rel = im.get("disparity_file")
+    if not rel:
+        raise InputError(f"image {im.get('id')}: no disparity_file (rendered disparity needed)")
+    try:
+        return np.load(root / rel).astype(np.float64)
+    except (OSError, ValueError) as err:
+        raise InputError(f"{root / rel}: cannot read disparity ({err})") from None
+
+
 def _default_stereo(width: int) -> SGBMStereo:
     """SGBM sized to the image: 128 disparities at 1024 px (ground ~1.2 m ahead at 0.3 m)."""
     return SGBMStereo(num_disparities=int(max(32, 16 * round(width / 128))))
@@ -160,8 +179,11 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
     left, right = _read_gray(root, im["file_name"]), _read_gray(root, im["right_file"])
     rig = StereoRig.from_camera_record(im["camera"])
     t0 = time.perf_counter()
-    rows_needed = _rows_needed(anns, left.shape[0], cfg.lifter)
-    disp = (cfg.stereo or _default_stereo(left.shape[1]))(left, right, rows_needed).disparity
+    if cfg.disparity == "rendered":
+        disp = _read_disparity(root, im)
+    else:
+        rows_needed = _rows_needed(anns, left.shape[0], cfg.lifter)
+        disp = (cfg.stereo or _default_stereo(left.shape[1]))(left, right, rows_needed).disparity
     stereo_s = time.perf_counter() - t0
     rows = []
     for ann in anns:
@@ -311,7 +333,8 @@ def markdown_table(metrics: dict[str, Any]) -> str:
     lines = [
         "# Crater geometry: 3D center and diameter from one stereo pair", "",
         (f"Ellipse source: `{metrics['settings']['ellipse_source']}`; images: "
-        f"{metrics['settings']['n_images']}; 3σ = 3 × RMS error about the truth (bias "
+        f"{metrics['settings']['n_images']}; disparity: "
+        f"{metrics['settings'].get('disparity', 'sgbm')}; 3σ = 3 × RMS error about the truth (bias "
         "included); σp: the paper's, the spread about the mean error vector."), "",
         ("| D (m) | n (15–20 m) | lifted | 3σ center 15–20 m (m) | 3σp center 15–20 m (m) "
         "| 3σ center all (m) | 3σ diameter 15–20 m (m) | paper stereo 3σ | paper lidar 3σ |"),

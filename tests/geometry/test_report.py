@@ -6,6 +6,7 @@ import pytest
 
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.geometry.frames import rover_to_camera
+from lunarnav_ml.geometry.lifter import LifterConfig
 from lunarnav_ml.geometry.report import geometry_report, summarize
 
 
@@ -79,3 +80,22 @@ def test_summarize_three_sigma_known_answer():
     assert near["center_3sigma_paper_m"] == pytest.approx(
         3 * np.sqrt((0.16 + 0.09 + 0.49) / 3))
     assert near["pd_3d"] == pytest.approx(2 / 3)  # 1.4 m > max(1 m, 0.25 D = 1.25 m): a miss
+
+
+def test_report_on_rendered_disparity(tmp_path, crater_scene):
+    """The dataset's own disparity isolates the lifter: exact inputs, exact answer."""
+    root = tmp_path / "ds"
+    _write_dataset(root, crater_scene)
+    with pytest.raises(InputError, match="disparity_file"):
+        geometry_report(root, tmp_path / "a", disparity="rendered", plots=False)
+    with pytest.raises(InputError, match="disparity"):
+        geometry_report(root, tmp_path / "a", disparity="magic", plots=False)
+    r = crater_scene.rig
+    np.save(root / "disp.npy", (r.focal_px * r.baseline_m / crater_scene.depth).astype(np.float32))
+    coco = json.loads((root / "annotations.json").read_text())
+    coco["images"][0]["disparity_file"] = "disp.npy"
+    (root / "annotations.json").write_text(json.dumps(coco))
+    m = geometry_report(root, tmp_path / "b", disparity="rendered", ellipse_source="label",
+                        lifter=LifterConfig(rim_offset=0.0), plots=False)
+    assert m["settings"]["disparity"] == "rendered" and m["overall"]["n_lifted"] == 1
+    assert m["overall"]["center_median_m"] < 0.05
