@@ -99,3 +99,17 @@ def test_report_on_rendered_disparity(tmp_path, crater_scene):
                         lifter=LifterConfig(rim_offset=0.0), plots=False)
     assert m["settings"]["disparity"] == "rendered" and m["overall"]["n_lifted"] == 1
     assert m["overall"]["center_median_m"] < 0.05
+
+
+def test_eval_cli_geometry_options(dataset, tmp_path, capsys):
+    from lunarnav_ml.cli import main
+
+    out = tmp_path / "cli"
+    assert main(["eval", "--task", "geometry", "--gt", str(dataset), "--ellipse-source", "box",
+                 "--out", str(out)]) == 0
+    m = json.loads((out / "geometry_metrics.json").read_text())
+    assert m["settings"]["ellipse_source"] == "box" and m["settings"]["disparity"] == "sgbm"
+    # no rendered disparity in this dataset: one line, exit 2
+    assert main(["eval", "--task", "geometry", "--gt", str(dataset), "--disparity", "rendered",
+                 "--out", str(tmp_path / "x")]) == 2
+    assert "disparity_file" in capsys.readouterr().err
