@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import pytest
+import torch
 
 from lunarnav_ml.data.datamodule import DetectionDataModule
 from lunarnav_ml.training.lightning_cli import run_cli
@@ -37,3 +38,16 @@ def test_cli_fast_dev_run(tiny_coco, tmp_path, monkeypatch):
              "--data.batch_size", "4", "--trainer.fast_dev_run", "2",
              "--trainer.enable_progress_bar", "false"])
     assert (tmp_path / "runs" / "nano_cpu").is_dir()
+
+
+def test_cli_bf16_mixed_on_cpu(tiny_coco, tmp_path, monkeypatch):
+    """bf16 autocast (1.8x faster training on CPUs with AVX512-BF16, BENCHMARKS.md) runs
+    through train.py with finite losses."""
+    monkeypatch.chdir(tmp_path)
+    config = Path(__file__).parents[2] / "configs" / "small_cpu.yaml"
+    cli = run_cli(["fit", "--config", str(config), *_data_args(tiny_coco), "--data.img_size", "64",
+                   "--data.batch_size", "4", "--trainer.fast_dev_run", "2",
+                   "--trainer.precision", "bf16-mixed", "--trainer.enable_progress_bar", "false"])
+    assert cli.trainer.precision == "bf16-mixed"
+    loss = cli.trainer.callback_metrics["train/loss"]
+    assert torch.isfinite(loss)
