@@ -7,12 +7,15 @@ Default method, "tangent" (no terrain model):
    projection of the) rim circle: center bearing phi and half-width alpha are exact angles.
    A circle seen this way has center at distance rho along phi and radius rho sin(alpha).
 2. Scale from stereo. The near-side rim samples (below the ellipse center line in the image)
-   get a disparity each, extrapolated along the image column from the rows just below the rim
-   (toward the camera: the side continuous with the crest, outside the matcher's smearing of
-   the crest's depth edge). The near-side ray at bearing theta meets the circle at horizontal
-   range rho k(theta) with k known from the angles, so d_i = f B |q_i,h| / (rho k_i): one
-   parameter 1 / rho fitted robustly (Huber IRLS) in disparity space, where matcher noise is
-   uniform. Many rim pixels feed one number, so per-pixel noise averages out.
+   move to the visible crest, the occluding edge where disparity jumps from the far wall to
+   the near rim (within a few rows), and get a disparity each, extrapolated along the image
+   column from the rows just below that edge (toward the camera: the side continuous with the
+   crest, outside the matcher's smearing of the depth edge). The near-side ray at bearing theta
+   meets the circle at horizontal range rho k(theta) with k known from the angles, less the
+   edge's offset in front of a rounded crest (``rim_offset`` of the radius), so
+   d_i = f B |q_i,h| / (rho k_i): one parameter 1 / rho fitted robustly (Huber IRLS) in
+   disparity space, where matcher noise is uniform. Many rim pixels feed one number, so
+   per-pixel noise averages out.
 3. Center (rho cos phi, rho sin phi, median rim height), diameter 2 rho sin(alpha); covariance
    of (x, y, z, D) propagated to first order from rho (the IRLS fit, inflated for neighbouring
    samples sharing matcher windows) and the two tangent bearings (ellipse sigma / f).
