@@ -332,8 +332,6 @@ def _crest_row(column: np.ndarray, v: float, snap_px: int, min_jump: float) -> f
     the boundary above the largest relative disparity increase going down the column."""
     lo, hi = max(int(np.floor(v)) - snap_px, 0), min(int(np.floor(v)) + snap_px + 2, len(column))
     seg = column[lo:hi]
-    if len(seg) < 3:
-        return v
     # NaN-tolerant: compare each valid row with the previous valid row
     idx = np.flatnonzero(np.isfinite(seg))
     if len(idx) < 3:
@@ -468,8 +466,7 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
     crest = np.column_stack([pts[near][ok][:, 0], rows[ok]])  # rim samples moved to the crest
     q_crest = rig.rays(crest)
     hor_crest = (q_crest @ rig.rotation.T)[:, :2]
-    delta = np.unwrap(np.arctan2(hor_crest[:, 1], hor_crest[:, 0]) - phi)
-    delta = (delta + np.pi) % (2 * np.pi) - np.pi
+    delta = (np.arctan2(hor_crest[:, 1], hor_crest[:, 0]) - phi + np.pi) % (2 * np.pi) - np.pi
     k = np.cos(delta) - np.sqrt(np.clip(np.sin(alpha) ** 2 - np.sin(delta) ** 2, 0.0, None))
     k = k - cfg.rim_offset * np.sin(alpha)  # the visible edge lies in front of the crest
     if np.any(k <= 0):
