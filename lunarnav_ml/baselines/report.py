@@ -30,6 +30,7 @@ from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.spread import horizontal_spread
 from lunarnav_ml.geometry.frames import camera_to_rover
 from lunarnav_ml.utils import atomic
+from lunarnav_ml.utils.images import read_disparity
 
 PAPER_3SIGMA_M = {"lidar": {5.0: 0.28, 10.0: 1.04, 15.0: 1.77, 20.0: 1.94},
                   "stereo": {5.0: 1.02, 10.0: 3.22, 15.0: 4.48, 20.0: 4.35}}
@@ -211,7 +212,7 @@ def load_disparity(
             raise InputError(f"images[{img['id']}]: cannot read {img['file_name']} / right image")
         max_d = img["camera"]["fx"] * img["camera"]["baseline_m"] / 1.0  # nearest ~1 m
         return compute_disparity(left, right, num_disparities=int(max_d)).disparity
-    disp = np.load(root / img["disparity_file"]).astype(np.float64)
+    disp = read_disparity(root, img)
     noisy = disp + rng.normal(0.0, noise_px, disp.shape)
     return np.where(disp > 0, noisy, np.nan)
 

@@ -33,6 +33,7 @@ from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
 from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.utils.atomic import write_figure, write_json, write_text
+from lunarnav_ml.utils.images import read_disparity
 
 PAPER_STEREO_3SIGMA_M = {5: 1.02, 10: 3.22, 15: 4.48, 20: 4.35}
 PAPER_LIDAR_3SIGMA_M = {5: 0.28, 10: 1.04, 15: 1.77, 20: 1.94}
@@ -158,16 +159,6 @@ def _read_gray(root: Path, rel: str) -> np.ndarray:
     return img
 
 
-def _read_disparity(root: Path, im: dict[str, Any]) -> np.ndarray:
-    rel = im.get("disparity_file")
-    if not rel:
-        raise InputError(f"image {im.get('id')}: no disparity_file (rendered disparity needed)")
-    try:
-        return np.load(root / rel).astype(np.float64)
-    except (OSError, ValueError) as err:
-        raise InputError(f"{root / rel}: cannot read disparity ({err})") from None
-
-
 def _default_stereo(width: int) -> SGBMStereo:
     """SGBM sized to the image: 128 disparities at 1024 px (ground ~1.2 m ahead at 0.3 m)."""
     return SGBMStereo(num_disparities=int(max(32, 16 * round(width / 128))))
@@ -180,7 +171,7 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
     rig = StereoRig.from_camera_record(im["camera"])
     t0 = time.perf_counter()
     if cfg.disparity == "rendered":
-        disp = _read_disparity(root, im)
+        disp = read_disparity(root, im)
     else:
         rows_needed = _rows_needed(anns, left.shape[0], cfg.lifter)
         disp = (cfg.stereo or _default_stereo(left.shape[1]))(left, right, rows_needed).disparity

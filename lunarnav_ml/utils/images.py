@@ -1,4 +1,5 @@
-"""Image files: the suffixes we read and an RGB reader with one-line errors."""
+"""Image files: the suffixes we read, an RGB reader and a reader of a dataset image's
+rendered disparity, with one-line errors."""
 
 from __future__ import annotations
 
@@ -20,6 +21,22 @@ def read_rgb(path: str | Path) -> np.ndarray:
     if image is None:
         raise InputError(f"{path}: not a readable image (corrupt or unknown format)")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def read_disparity(root: str | Path, image: dict) -> np.ndarray:
+    """The rendered disparity (float64, px; 0 where nothing was hit) of a dataset image record.
+
+    Raises:
+        InputError: the record has no ``disparity_file``, or the file is missing or unreadable.
+    """
+    rel = image.get("disparity_file")
+    if not rel:
+        raise InputError(f"images[{image.get('id')}]: no disparity_file (render with stereo)")
+    path = Path(root) / rel
+    try:
+        return np.load(path).astype(np.float64)
+    except (OSError, ValueError, EOFError) as err:
+        raise InputError(f"{path}: cannot read disparity ({err})") from None
 
 
 def caption_tile(image: np.ndarray, side: int, caption: str) -> np.ndarray:

@@ -113,3 +113,15 @@ def test_eval_cli_geometry_options(dataset, tmp_path, capsys):
     assert main(["eval", "--task", "geometry", "--gt", str(dataset), "--disparity", "rendered",
                  "--out", str(tmp_path / "x")]) == 2
     assert "disparity_file" in capsys.readouterr().err
+
+
+def test_rendered_disparity_reader_names_the_file(tmp_path):
+    from lunarnav_ml.utils.images import read_disparity
+
+    (tmp_path / "bad.npy").write_bytes(b"not an array")
+    with pytest.raises(InputError, match="bad.npy"):
+        read_disparity(tmp_path, {"id": 3, "disparity_file": "bad.npy"})
+    with pytest.raises(InputError, match="gone.npy"):
+        read_disparity(tmp_path, {"id": 3, "disparity_file": "gone.npy"})
+    np.save(tmp_path / "ok.npy", np.ones((2, 3), np.float32))
+    assert read_disparity(tmp_path, {"id": 3, "disparity_file": "ok.npy"}).dtype == np.float64
