@@ -340,8 +340,11 @@ def markdown_table(metrics: dict[str, Any]) -> str:
             f"| {_fmt(allr['center_3sigma_m'])} | {_fmt(near['diameter_3sigma_m'])} "
             f"| {_fmt(PAPER_STEREO_3SIGMA_M.get(key))} | {_fmt(PAPER_LIDAR_3SIGMA_M.get(key))} |")
     t = metrics["time_per_crater_ms"]
+    rendered = metrics["settings"].get("disparity") == "rendered"
+    disparity_step = "reading the rendered disparity" if rendered else "SGBM"
     lines += ["", (f"Time per crater (1 core): fit {_fmt(t['fit'], 1)} ms, lift "
-              f"{_fmt(t['lift'], 1)} ms; SGBM {_fmt(t['stereo_per_image'], 0)} ms per image."), "",
+              f"{_fmt(t['lift'], 1)} ms; {disparity_step} {_fmt(t['stereo_per_image'], 0)} ms per "
+              "image."), "",
               "Pd(3D) vs near-rim range (m): " + ", ".join(
                   f"{k}: {_fmt(v)}" for k, v in metrics["pd_3d_vs_range"].items()), "",
               "Outcomes: " + ", ".join(f"{k} {v}" for k, v in sorted(metrics["reasons"].items()))]
