@@ -72,7 +72,7 @@ def generate_dataset(out_dir: str | Path, n_images: int | None = None, seed: int
                      config: SynthConfig | None = None, image_size: int = 512,
                      protocol: str | None = None, shard: Sequence[int] = (0, 1),
                      stereo: bool = True, lidar: bool = False, progress: bool = True,
-                     workers: int | None = None) -> Path:
+                     workers: int | None = None, items: Sequence[int] | None = None) -> Path:
     """Render a dataset folder and return the path of its annotations.
 
     Args:
@@ -85,6 +85,8 @@ def generate_dataset(out_dir: str | Path, n_images: int | None = None, seed: int
         progress: tqdm bar on stderr.
         workers: rendering processes (each single-threaded). None: 1 for fewer than 32 items,
             else min(2, CPU count). Output bytes do not depend on it.
+        items: render only these item indices (of this shard; e.g. a balanced subset of a
+            protocol grid); None: all. An item's bytes do not depend on which others exist.
 
     Returns:
         ``annotations.json`` once every item of the run exists (always for shard 0/1),
@@ -105,11 +107,17 @@ def generate_dataset(out_dir: str | Path, n_images: int | None = None, seed: int
     used_cfg, plan = _plan(job)
     root = Path(out_dir)
     _write_manifest(root, seed, used_cfg, image_size, protocol, len(plan), job.stereo, job.lidar)
-    todo = [i for i in range(len(plan))
-            if i % n == k and not (root / "items" / f"{i:06d}.json").exists()]
+    mine = [i for i in range(len(plan)) if i % n == k]
+    if items is not None:
+        wanted = {int(i) for i in items}
+        bad = sorted(i for i in wanted if not 0 <= i < len(plan))
+        if bad:
+            raise InputError(f"items: indices must be in 0..{len(plan) - 1}, got {bad[0]}")
+        mine = [i for i in mine if i in wanted]
+    todo = [i for i in mine if not (root / "items" / f"{i:06d}.json").exists()]
     if workers is None:
         workers = 1 if len(todo) < 32 else max(1, min(2, os.cpu_count() or 1))
-    bar = _progress(len([i for i in range(len(plan)) if i % n == k]), progress)
+    bar = _progress(len(mine), progress)
     bar.update(bar.total - len(todo))
     if workers == 1 or len(todo) < 2:
         render_items(job, todo, bar.update)

@@ -55,6 +55,20 @@ def test_shards_and_resume_equal_one_run(tmp_path, small_cfg):
     assert merged.read_bytes() == whole.read_bytes()
 
 
+def test_items_subset_renders_only_those_with_the_same_bytes(tmp_path, small_cfg):
+    kw = {"n_images": 3, "seed": 2, "config": small_cfg, "image_size": 64, "stereo": False,
+          "progress": False}
+    whole = generate_dataset(tmp_path / "whole", **kw)
+    part = generate_dataset(tmp_path / "part", items=[2], **kw)
+    assert part.name == "annotations.shard-0-of-1.json"
+    assert [im["id"] for im in json.loads(part.read_text())["images"]] == [3]
+    assert not (tmp_path / "part" / "items" / "000000.json").exists()
+    a, b = _digest(whole.parent), _digest(part.parent)
+    assert b["images/left/000002.png"] == a["images/left/000002.png"]
+    with pytest.raises(InputError, match="items"):
+        generate_dataset(tmp_path / "part", items=[3], **kw)
+
+
 def test_bad_arguments(tmp_path, small_cfg):
     with pytest.raises(InputError, match="shard"):
         generate_dataset(tmp_path / "x", n_images=1, shard=(2, 2), config=small_cfg)
