@@ -234,7 +234,9 @@ def _eval_crater(left: np.ndarray, disp: np.ndarray, rig: StereoRig, ann: dict[s
     res = lift_crater(ellipse, disp, rig, cfg.lifter)
     t2 = time.perf_counter()
     row.update(fit_s=t1 - t0, lift_s=t2 - t1, ellipse=ellipse.to_array().tolist(),
-               fit_quality=quality, reason=res.reason if res.ok else f"lift:{res.reason}")
+               fit_quality=quality, reason=res.reason if res.ok else f"lift:{res.reason}",
+               **{k: _or_none(getattr(res, k)) for k in
+                  ("rim_residual_px", "rim_disparity_px", "crest_fraction")})
     if not res.ok:
         return row
     err = res.center_m[:2] - truth[:2]
@@ -243,6 +245,11 @@ def _eval_crater(left: np.ndarray, disp: np.ndarray, rig: StereoRig, ann: dict[s
             "diameter_err_m": res.diameter_m - diam,
             "sigma_h_m": res.horizontal_sigma_m, "sigma_d_m": float(np.sqrt(res.covariance[3, 3])),
             "rim_height_m": res.rim_height_m}
+
+
+def _or_none(x: float) -> float | None:
+    """A finite number, or None (JSON has no NaN)."""
+    return float(x) if np.isfinite(x) else None
 
 
 def _ellipse(left: np.ndarray, box: np.ndarray, ann: dict[str, Any],

@@ -143,3 +143,25 @@ def test_rim_offset_moves_the_center_away_by_about_the_offset(crater_scene):
     rho = np.hypot(*sharp.center_m[:2])
     expected = 0.06 * sc.crater.radius / (1 - sc.crater.radius / rho)
     assert np.hypot(*rounded.center_m[:2]) - rho == pytest.approx(expected, rel=0.3)
+
+
+def test_rim_disparity_crest_fraction_and_the_relative_gate(crater_scene):
+    sc = crater_scene
+    disp = _true_disparity(sc)
+    exact = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.0))
+    assert exact.ok
+    # the median of the true disparity at the labelled near-rim samples (a sharp crest)
+    pts = sc.ellipse.points(72)
+    near = pts[pts[:, 1] > sc.ellipse.cy + 0.2 * (pts[:, 1].max() - sc.ellipse.cy)]
+    rim = np.median(disp[np.round(near[:, 1]).astype(int), np.round(near[:, 0]).astype(int)])
+    assert exact.rim_disparity_px == pytest.approx(rim, rel=0.05)
+    assert 0.5 <= exact.crest_fraction <= 1.0  # a sharp crest: most samples find its edge
+    # a matcher error of ~2 px per column: over the absolute 1.5 px gate, within 20 % of the
+    # disparity
+    noisy = disp + np.random.default_rng(3).normal(0.0, 2.0, (1, disp.shape[1]))
+    strict = lift_crater(sc.ellipse, noisy, sc.rig, LifterConfig(max_rim_residual_rel=0.0))
+    assert not strict.ok and strict.reason == "stereo_inconsistent"
+    assert 1.5 < strict.rim_residual_px < 0.2 * strict.rim_disparity_px
+    relative = lift_crater(sc.ellipse, noisy, sc.rig, LifterConfig(max_rim_residual_rel=0.2))
+    assert relative.ok
+    assert relative.rim_residual_px == strict.rim_residual_px

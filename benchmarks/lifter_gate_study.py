@@ -1,0 +1,85 @@
+"""Study of the lifter's rim-residual gate on a development stereo set.
+
+Runs the geometry report once with the gate open (every lift kept and scored), then applies
+candidate gates to the per-crater rows (``rim_residual_px``, ``rim_disparity_px``,
+``crest_fraction``) and prints, per gate, the 3-sigma horizontal center error for craters
+15-20 m away and over all ranges (D = 5 / 10 / 15 / 20 m), the diameter 3-sigma at 15-20 m,
+Pd(3D) and the lifted count. Use a development render, never the evaluation set:
+
+    .venv/bin/lunarnav synth /tmp/dev_ps --protocol paper-stereo --seed 1 --size 1024 --shard 0/7
+    .venv/bin/python benchmarks/lifter_gate_study.py /tmp/dev_ps/annotations.shard-0-of-7.json \\
+        --out outputs/dev_gate_study
+
+``--rows-only`` re-reads ``geometry_craters.json`` from ``--out`` instead of running again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from lunarnav_ml.errors import LunarNavError
+from lunarnav_ml.geometry.lifter import LifterConfig
+from lunarnav_ml.geometry.report import geometry_report, summarize
+
+# (absolute px, fraction of the rim disparity, least crest fraction)
+GATES = [(1e9, 0.0, 0.0), (1.5, 0.0, 0.0), (1.0, 0.05, 0.0), (1.5, 0.08, 0.0), (1.5, 0.10, 0.0),
+         (1.5, 0.12, 0.0), (1.5, 0.15, 0.0), (1.5, 0.20, 0.0), (1.5, 0.0, 0.3), (1.5, 0.0, 0.5)]
+DIAMETERS = ("5.0", "10.0", "15.0", "20.0")
+
+
+def apply_gate(rows: list[dict[str, Any]], abs_px: float, rel: float,
+               min_crest: float) -> list[dict[str, Any]]:
+    """Rows with ``ok`` cleared where a lift fails this gate."""
+    out = []
+    for r in rows:
+        r = dict(r)
+        if r["ok"]:
+            limit = max(abs_px, rel * r["rim_disparity_px"])
+            r["ok"] = r["rim_residual_px"] <= limit and (r["crest_fraction"] or 0.0) >= min_crest
+        out.append(r)
+    return out
+
+
+def _per_d(metrics: dict[str, Any], key: str, window: str) -> str:
+    per_d = metrics["per_diameter"]
+    vals = [per_d.get(d, {}).get(window, {}).get(key) for d in DIAMETERS]
+    return " / ".join("-" if v is None else f"{v:.2f}" for v in vals)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("gt", type=Path, help="development stereo set (annotations file or folder)")
+    p.add_argument("--out", type=Path, default=Path("outputs/dev_gate_study"))
+    p.add_argument("--ellipse-source", default="fit", choices=("fit", "label", "box"))
+    p.add_argument("--rows-only", action="store_true", help="reuse the rows in --out")
+    args = p.parse_args(argv)
+    try:
+        if not args.rows_only:
+            geometry_report(args.gt, args.out, ellipse_source=args.ellipse_source,
+                            lifter=LifterConfig(max_rim_residual_px=1e9), plots=False)
+        rows_path = args.out / "geometry_craters.json"
+        try:
+            rows = json.loads(rows_path.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise LunarNavError(f"{rows_path}: cannot read the report's rows ({err})") from None
+    except LunarNavError as err:
+        print(f"lifter_gate_study: error: {err}", file=sys.stderr)
+        return 2
+    print("gate (abs px, rel, crest) | 3s centre 15-20 m | 3s centre all | 3s diameter 15-20 m"
+          " | Pd(3D) | lifted | Pd(3D) at 5 / 6 / 7 m")
+    for gate in GATES:
+        m = summarize(apply_gate(rows, *gate))
+        near = " / ".join(f"{m['pd_3d_vs_range'].get(str(k)) or 0:.2f}" for k in (5, 6, 7))
+        print(f"{gate} | {_per_d(m, 'center_3sigma_m', 'range_15_20')} | "
+              f"{_per_d(m, 'center_3sigma_m', 'all_ranges')} | "
+              f"{_per_d(m, 'diameter_3sigma_m', 'range_15_20')} | {m['overall']['pd_3d']:.3f} | "
+              f"{m['overall']['n_lifted']} | {near}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
