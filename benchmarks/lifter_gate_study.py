@@ -16,12 +16,12 @@ Pd(3D) and the lifted count. Use a development render, never the evaluation set:
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
 from lunarnav_ml.errors import LunarNavError
+from lunarnav_ml.eval.cli import load_json
 from lunarnav_ml.geometry.lifter import LifterConfig
 from lunarnav_ml.geometry.report import geometry_report, summarize
 
@@ -61,11 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.rows_only:
             geometry_report(args.gt, args.out, ellipse_source=args.ellipse_source,
                             lifter=LifterConfig(max_rim_residual_px=1e9), plots=False)
-        rows_path = args.out / "geometry_craters.json"
-        try:
-            rows = json.loads(rows_path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise LunarNavError(f"{rows_path}: cannot read the report's rows ({err})") from None
+        rows = load_json(args.out / "geometry_craters.json", "geometry report rows")
     except LunarNavError as err:
         print(f"lifter_gate_study: error: {err}", file=sys.stderr)
         return 2

@@ -18,11 +18,11 @@ render with that seed; 896 pairs at 1024 px take about 25 min on 2 cores):
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 from lunarnav_ml.errors import LunarNavError
+from lunarnav_ml.eval.cli import load_json
 from lunarnav_ml.utils.atomic import write_json
 
 
@@ -51,10 +51,7 @@ def main(argv: list[str] | None = None) -> int:
                                     items=[k for k in range(len(grid(args.protocol))) if in_half(k)])
         else:
             path = args.root / "annotations.json"
-        try:
-            coco = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise LunarNavError(f"{path}: cannot read COCO annotations ({err})") from None
+        coco = load_json(path, "COCO annotations")
     except LunarNavError as err:
         print(f"protocol_subset: error: {err}", file=sys.stderr)
         return 2
