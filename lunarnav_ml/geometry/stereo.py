@@ -57,6 +57,7 @@ def compute_disparity(
     mode: str = "hh",
     min_texture: float = 1.0,
     rows: tuple[int, int] | None = None,
+    penalties: tuple[float, float] = (8.0, 32.0),
 ) -> DisparityResult:
     """Disparity of a rectified pair with StereoSGBM and a left-right consistency check.
 
@@ -80,6 +81,9 @@ def compute_disparity(
             shadow) matches anywhere.
         rows: compute only image rows [rows[0], rows[1]) (plus a margin for the matcher);
             the other rows come back invalid. Saves time when only some rows matter.
+        penalties: SGBM's smoothness penalties (P1, P2) as multiples of ``block_size``²
+            (OpenCV's suggested 8 and 32; 0 <= P1 < P2). A smaller P1 follows slanted
+            surfaces (ground, crater flanks) more closely.
 
     Returns:
         DisparityResult with NaN at invalid pixels.
@@ -96,15 +100,21 @@ def compute_disparity(
             "block_size": block_size,
             "uniqueness_ratio": uniqueness_ratio, "lr_max_diff_px": lr_max_diff_px,
             "speckle_window": speckle_window, "speckle_range": speckle_range, "mode": mode,
-            "min_texture": min_texture})
+            "min_texture": min_texture, "penalties": penalties})
     if block_size < 1 or block_size % 2 == 0:
         raise InputError(f"block_size: must be odd and >= 1, got {block_size}")
     if mode not in SGBM_MODES:
         raise InputError(f"mode: expected one of {sorted(SGBM_MODES)}, got {mode!r}")
+    try:
+        p1, p2 = (float(v) for v in penalties)
+    except (TypeError, ValueError):
+        raise InputError(f"penalties: expected two numbers (P1, P2), got {penalties!r}") from None
+    if not 0 <= p1 < p2:
+        raise InputError(f"penalties: expected 0 <= P1 < P2, got {tuple(penalties)}")
     num = int(np.ceil(max(num_disparities, 16) / 16.0) * 16)
     sgbm = cv2.StereoSGBM_create(
         minDisparity=min_disparity, numDisparities=num, blockSize=block_size,
-        P1=8 * block_size**2, P2=32 * block_size**2, disp12MaxDiff=-1,
+        P1=round(p1 * block_size**2), P2=round(p2 * block_size**2), disp12MaxDiff=-1,
         uniquenessRatio=uniqueness_ratio, speckleWindowSize=speckle_window,
         speckleRange=speckle_range, mode=SGBM_MODES[mode],
     )
@@ -208,6 +218,7 @@ class SGBMStereo:
     uniqueness_ratio: int = 5
     lr_max_diff_px: float = 1.0
     mode: str = "hh"
+    penalties: tuple[float, float] = (8.0, 32.0)
 
     def __call__(self, left: np.ndarray, right: np.ndarray,
                  rows: tuple[int, int] | None = None) -> DisparityResult:
@@ -216,4 +227,5 @@ class SGBMStereo:
             left, right, num_disparities=self.num_disparities, min_disparity=self.min_disparity,
             block_size=self.block_size, uniqueness_ratio=self.uniqueness_ratio,
             lr_max_diff_px=self.lr_max_diff_px, mode=self.mode, rows=rows,
+            penalties=self.penalties,
         )
