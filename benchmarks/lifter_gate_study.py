@@ -38,8 +38,9 @@ def apply_gate(rows: list[dict[str, Any]], abs_px: float, rel: float,
     for r in rows:
         r = dict(r)
         if r["ok"]:
-            limit = max(abs_px, rel * r["rim_disparity_px"])
-            r["ok"] = r["rim_residual_px"] <= limit and (r["crest_fraction"] or 0.0) >= min_crest
+            cfg = LifterConfig(max_rim_residual_px=abs_px, max_rim_residual_rel=rel)
+            r["ok"] = (r["rim_residual_px"] <= cfg.residual_limit_px(r["rim_disparity_px"])
+                       and (r["crest_fraction"] or 0.0) >= min_crest)
         out.append(r)
     return out
 

@@ -57,7 +57,7 @@ class LiftResult:
         n_ground: valid disparities used for the ground plane.
         n_rim: valid disparities used for the rim plane.
         rim_residual_px: robust std of the rim disparities about the rim plane, px.
-        rim_disparity_px: median disparity of the rim samples used, px.
+        rim_disparity_px: "tangent": median disparity of the near-rim samples used, px.
         crest_fraction: "tangent": fraction of the near-rim samples that found an occluding
             crest edge (a disparity jump) to move to; the rest kept the ellipse's row.
     """
@@ -148,6 +148,10 @@ class LifterConfig:
     max_radial_rms: float = 0.1
     ellipse_sigma_px: float = 0.5
     rim_height_sigma_m: float = 0.02
+
+    def residual_limit_px(self, rim_disparity_px: float) -> float:
+        """The "tangent" residual gate for a rim of this median disparity, px."""
+        return max(self.max_rim_residual_px, self.max_rim_residual_rel * rim_disparity_px)
 
 
 @dataclass(frozen=True)
@@ -476,7 +480,8 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
     ok = np.isfinite(d) & (d > 0)
     if ok.sum() < cfg.min_rim:
         return LiftResult(False, "insufficient_rim_disparity", n_rim=int(ok.sum()))
-    crest = np.column_stack([pts[near][ok][:, 0], rows[ok]])  # rim samples moved to the crest
+    u0, crest_v0 = pts[near][ok].T  # the lifted samples, on the ellipse
+    crest = np.column_stack([u0, rows[ok]])  # ... moved to the crest
     q_crest = rig.rays(crest)
     hor_crest = (q_crest @ rig.rotation.T)[:, :2]
     delta = (np.arctan2(hor_crest[:, 1], hor_crest[:, 0]) - phi + np.pi) % (2 * np.pi) - np.pi
@@ -499,9 +504,8 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
     diam = 2.0 * rho * np.sin(alpha)
     d_rim = float(np.median(d[ok]))
     base = {"n_rim": n_used, "rim_residual_px": rstd, "rim_height_m": z,
-            "rim_disparity_px": d_rim,
-            "crest_fraction": float(np.mean(rows[ok] != pts[near][ok][:, 1]))}
-    if rstd > max(cfg.max_rim_residual_px, cfg.max_rim_residual_rel * d_rim):
+            "rim_disparity_px": d_rim, "crest_fraction": float(np.mean(rows[ok] != crest_v0))}
+    if rstd > cfg.residual_limit_px(d_rim):
         return LiftResult(False, "stereo_inconsistent", **base)
     cov = _tangent_covariance(rho, var[0, 0] * rho**4 * cfg.corr_factor, phi, alpha, rover, cfg,
                               rig.focal_px)

@@ -167,12 +167,13 @@ def _default_stereo(width: int) -> SGBMStereo:
 def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
                 dets: list[dict[str, Any]] | None, cfg: _Settings) -> list[dict[str, Any]]:
     """Disparity once, then one row per labelled crater."""
-    left, right = _read_gray(root, im["file_name"]), _read_gray(root, im["right_file"])
+    left = _read_gray(root, im["file_name"])
     rig = StereoRig.from_camera_record(im["camera"])
     t0 = time.perf_counter()
-    if cfg.disparity == "rendered":
+    if cfg.disparity == "rendered":  # the right image is not needed
         disp = read_disparity(root, im)
     else:
+        right = _read_gray(root, im["right_file"])
         rows_needed = _rows_needed(anns, left.shape[0], cfg.lifter)
         disp = (cfg.stereo or _default_stereo(left.shape[1]))(left, right, rows_needed).disparity
     stereo_s = time.perf_counter() - t0
