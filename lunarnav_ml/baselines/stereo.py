@@ -44,6 +44,9 @@ class StereoConfig:
         min_rise_px, min_rise_frac: a far-wall segment rises by more than
             max(px, frac * plane disparity) from bottom to top.
         min_segment_rows: shortest far-wall segment in a column (at 1024 rows).
+        crest_slope_ratio: a rising run whose upper part rises at less than this fraction of
+            its lower part's rate is cut at the break (the far crest, where the terrain behind
+            the crater takes over); 0 keeps whole runs.
         min_region_px: smallest far-wall region kept (at 1024 rows).
         jump_px, jump_frac: a rim discontinuity drops by more than max(px, frac * d).
         max_gap_rows: invalid rows bridged when looking for a discontinuity.
@@ -60,6 +63,7 @@ class StereoConfig:
     min_rise_px: float = 0.4
     min_rise_frac: float = 0.04
     min_segment_rows: int = 6
+    crest_slope_ratio: float = 0.5
     min_region_px: int = 120
     jump_px: float = 0.6
     jump_frac: float = 0.06
@@ -249,6 +253,8 @@ def far_wall_mask(
     min_len = max(round(cfg.min_segment_rows * scale), 3)
     keep = ends - starts >= min_len
     starts, ends, cols = starts[keep], ends[keep], cols[keep]
+    if cfg.crest_slope_ratio > 0:
+        starts = _cut_at_crests(resid, starts, ends, cols, cfg.crest_slope_ratio, min_len)
     rise = resid[starts, cols] - resid[ends - 1, cols]
     need = np.maximum(cfg.min_rise_px, cfg.min_rise_frac * np.abs(plane_d[ends - 1, cols]))
     ok = rise >= need
@@ -256,6 +262,64 @@ def far_wall_mask(
     for s, e, c in zip(starts[ok], ends[ok], cols[ok]):
         mask[s:e, c] = True
     return mask
+
+
+def _cut_at_crests(resid: np.ndarray, starts: np.ndarray, ends: np.ndarray, cols: np.ndarray,
+                   ratio: float, min_len: int) -> np.ndarray:
+    """New start rows of the runs after :func:`split_at_crest` (runs of one length at a time;
+    a cut run keeps at least ``min_len`` rows)."""
+    starts = starts.copy()
+    lengths = ends - starts
+    for n in np.unique(lengths):
+        idx = np.nonzero(lengths == n)[0]
+        rows = ends[idx, None] - 1 - np.arange(n)[None, :]  # bottom of the run upward
+        drop = split_at_crest(resid[rows, cols[idx, None]], ratio)
+        starts[idx] += np.minimum(drop, n - min_len)
+    return starts
+
+
+def split_at_crest(profiles: np.ndarray, ratio: float, min_piece: int = 3) -> np.ndarray:
+    """Where rising profiles stop being the far wall: the best two-line fit's break, when the
+    upper line rises at less than ``ratio`` times the lower one.
+
+    The paper's far-wall cue is a roughly linear rise of the residual going up the column; on
+    sloping ground the rise can run on past the far crest at a gentler rate, and the crest
+    then sits at the kink between the two lines.
+
+    Args:
+        profiles: residuals from the bottom of each run upward (px, finite), one run per row.
+        ratio: slope ratio below which a run is cut.
+        min_piece: fewest samples on each side of the break.
+
+    Returns:
+        samples to drop from the top of each run (0: keep it whole).
+
+    Shape:
+        profiles: (K, n) -> (K,) int.
+    """
+    y = np.asarray(profiles, np.float64)
+    k, n = y.shape
+    if n < 2 * min_piece or k == 0:
+        return np.zeros(k, int)
+    x = np.broadcast_to(np.arange(n, dtype=np.float64), y.shape)
+    sums = [np.concatenate([np.zeros((k, 1)), np.cumsum(v, axis=1)], axis=1)
+            for v in (np.ones_like(y), x, x * x, y, x * y, y * y)]
+    breaks = np.arange(min_piece, n - min_piece + 1)
+
+    def fit(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Slopes and squared errors of the least-squares lines through samples lo..hi-1."""
+        cnt, sx, sxx, sy, sxy, syy = (c[:, hi] - c[:, lo] for c in sums)
+        cov = sxy - sx * sy / cnt
+        slope = cov / np.maximum(sxx - sx * sx / cnt, 1e-12)
+        return slope, np.maximum(syy - sy * sy / cnt - slope * cov, 0.0)
+
+    low_slope, low_err = fit(np.zeros_like(breaks), breaks)
+    high_slope, high_err = fit(breaks, np.full_like(breaks, n))
+    best = np.argmin(low_err + high_err, axis=1)
+    rows = np.arange(k)
+    s_low, s_high = low_slope[rows, best], high_slope[rows, best]
+    cut = (s_low > 0) & (s_high < ratio * s_low) & np.all(np.isfinite(y), axis=1)
+    return np.where(cut, n - breaks[best], 0)
 
 
 def column_runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -35,6 +35,33 @@ def test_column_runs_known_answer():
     assert sorted(zip(cols, starts, ends)) == [(0, 1, 3), (0, 4, 6), (1, 0, 6)]
 
 
+def test_split_at_crest_cuts_the_gentler_rise_behind_the_crest():
+    wall = 0.2 * np.arange(10)  # far wall: 0.2 px per row for 10 rows
+    behind = wall[-1] + 0.05 * np.arange(1, 9)  # rising ground behind the crest, 4x gentler
+    kinked = np.concatenate([wall, behind])
+    straight = 0.2 * np.arange(18)
+    bowl = 0.02 * np.arange(18) ** 2  # steepest at the top: a bowl's far wall is kept whole
+    drop = S.split_at_crest(np.stack([kinked, straight, bowl]), ratio=0.5)
+    assert drop.tolist() == [8, 0, 0]
+    assert S.split_at_crest(np.stack([kinked]), ratio=0.0).tolist() == [0]
+    assert S.split_at_crest(np.zeros((0, 18)), ratio=0.5).shape == (0,)
+
+
+def test_far_wall_mask_stops_at_the_crest():
+    resid = np.full((40, 1), -2.0)
+    rows = np.arange(40)
+    # going up from row 35: the far wall rises 0.2 px/row to the crest at row 25, then the
+    # ground behind the crater keeps rising at 0.04 px/row up to row 5
+    resid[25:36, 0] = -2.0 + 0.2 * (35 - rows[25:36])
+    resid[5:25, 0] = resid[25, 0] + 0.04 * (25 - rows[5:25])
+    plane_d = np.full_like(resid, 10.0)
+    cut = S.far_wall_mask(resid, plane_d, S.StereoConfig())
+    whole = S.far_wall_mask(resid, plane_d, S.StereoConfig(crest_slope_ratio=0.0))
+    assert whole[8:33, 0].all()
+    top = np.nonzero(cut[:, 0])[0].min()
+    assert 23 <= top <= 27 and cut[30, 0]
+
+
 def test_rim_discontinuity_across_an_invalid_gap():
     d = np.tile(np.linspace(5.0, 10.0, 40)[:, None], (1, 3))  # disparity grows down the image
     d[:20] -= 2.0  # a 2 px drop going up at row 20 -> rim pixel is row 20
