@@ -3,14 +3,16 @@
 1. Fit the disparity map with a plane A x + B y + C d + D = 0 (robust least squares).
 2. Residual map r = d - plane: crater interiors seen beyond a near rim are farther than the
    plane (r < 0); the far interior wall rises smoothly back to r ~ 0 at the far rim.
-3. In each column, segments that could be a far wall: runs of r below the plane whose linear
-   fit rises going up the image.
+3. In each column, segments that could be a far wall: runs of r rising going up the image,
+   cut at the far crest where a two-line fit finds the rise slowing (the ground behind).
 4. Connected components of those segments; small regions are deleted as noise.
 5. Rim candidates: range discontinuities (a disparity drop going up a column, across small
    invalid gaps).
 6. Pair each far-wall region with the rim right below it; weak pairs are dropped.
 7. Fit: the near rim (lower side of the jump) and the far rim (the crest where r stops rising)
-   are lifted to 3D and a circle is fitted in the ground plane: center and diameter.
+   are lifted to 3D, each with the nearest disparity a few rows around it (at an occluding
+   crest the matcher may give the pixel the farther surface's), and a circle is fitted in the
+   ground plane: center and diameter.
 
 Disparity convention (``lunarnav_ml.geometry.stereo``): d = u_left - u_right > 0, px; invalid
 pixels are NaN or <= 0. Results are in the rover frame (x forward, y left, z up, origin on the
@@ -52,6 +54,9 @@ class StereoConfig:
         max_gap_rows: invalid rows bridged when looking for a discontinuity.
         pair_rows: a far-wall column pairs with a rim found within this many rows below it.
         min_pair_frac: fraction of a region's columns that must pair with the rim.
+        rim_window_rows: a rim pixel whose disparity is a jump (jump_px, jump_frac) below the
+            largest within this many rows of it (at 1024 rows) is lifted with that one: at an
+            occluding crest the matcher may give it the farther surface's disparity.
         min_diameter_m, max_diameter_m: fitted diameters kept, m.
     """
 
@@ -63,13 +68,14 @@ class StereoConfig:
     min_rise_px: float = 0.4
     min_rise_frac: float = 0.04
     min_segment_rows: int = 6
-    crest_slope_ratio: float = 0.5
+    crest_slope_ratio: float = 0.85
     min_region_px: int = 120
     jump_px: float = 0.6
     jump_frac: float = 0.06
     max_gap_rows: int = 12
     pair_rows: int = 16
     min_pair_frac: float = 0.4
+    rim_window_rows: int = 2
     min_diameter_m: float = 2.0
     max_diameter_m: float = 40.0
 
@@ -171,7 +177,7 @@ def detect_craters_stereo(
     rims = rim_discontinuities(np.where(valid, disp, np.nan), cfg)
     dets = []
     for lab in range(1, int(labels.max()) + 1):
-        det = _pair_and_fit(lab, labels, rims, resid, raw, rig, cfg)
+        det = _pair_and_fit(lab, labels, rims, resid, raw, rig, cfg, scale)
         if det is not None:
             dets.append(det)
     return sorted(dets, key=lambda d: -d.score)
@@ -379,7 +385,7 @@ def rim_discontinuities(disp: np.ndarray, cfg: StereoConfig) -> np.ndarray:
 
 def _pair_and_fit(
     label: int, labels: np.ndarray, rims: np.ndarray, resid: np.ndarray, disp: np.ndarray,
-    rig: StereoRigParams, cfg: StereoConfig,
+    rig: StereoRigParams, cfg: StereoConfig, scale: float = 1.0,
 ) -> StereoDetection | None:
     """Pair far-wall region ``label`` with the rim below it and fit the crater circle."""
     rr, cc = np.nonzero(labels == label)
@@ -397,8 +403,10 @@ def _pair_and_fit(
     score = len(near_uv) / max(len(cols), 1)
     if score < cfg.min_pair_frac or len(near_uv) < 3:
         return None
-    near = pixels_to_rover(np.asarray(near_uv, float), disp, rig)
-    far = pixels_to_rover(np.asarray(far_uv, float), disp, rig)
+    window = round(cfg.rim_window_rows * scale)
+    steps = (cfg.jump_px, cfg.jump_frac)
+    near = pixels_to_rover(np.asarray(near_uv, float), disp, rig, window, *steps)
+    far = pixels_to_rover(np.asarray(far_uv, float), disp, rig, window, *steps)
     pts = np.vstack([near, far])
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if len(pts) < 5:
@@ -448,19 +456,38 @@ def median_filter(disp: np.ndarray, valid: np.ndarray, ksize: int) -> np.ndarray
     return np.where(valid & (out > 0), out, np.nan)
 
 
-def pixels_to_rover(uv: np.ndarray, disp: np.ndarray, rig: StereoRigParams) -> np.ndarray:
+def pixels_to_rover(uv: np.ndarray, disp: np.ndarray, rig: StereoRigParams,
+                    window_rows: int = 0, step_px: float = 0.6,
+                    step_frac: float = 0.06) -> np.ndarray:
     """Lift pixels with their disparity to the rover frame (NaN where the disparity is
     invalid).
+
+    With ``window_rows`` > 0 a pixel on the far side of a range discontinuity is moved to its
+    near side: when the largest valid disparity within that many rows of it in its column
+    exceeds its own by more than max(step_px, step_frac * that disparity) (or its own is
+    invalid), it takes that largest one. A rim pixel whose disparity is the farther surface's
+    (matching at an occluding crest) then lifts to the crest; one on the crest keeps its own.
 
     Shape:
         uv: (N, 2) px (column, row) -> (N, 3) m.
     """
     u, v = uv[:, 0], uv[:, 1]
     d = disp[v.astype(int), u.astype(int)]
+    if window_rows > 0:
+        rows = v.astype(int)[:, None] + np.arange(-window_rows, window_rows + 1)[None, :]
+        around = disp[np.clip(rows, 0, disp.shape[0] - 1), u.astype(int)[:, None]]
+        best = np.max(np.where(np.isfinite(around), around, -np.inf), axis=1)
+        with np.errstate(invalid="ignore"):
+            far_side = ~np.isfinite(d) | (best - d > np.maximum(step_px, step_frac * best))
+        d = np.where(far_side & np.isfinite(best), best, d)
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(d > 0, rig.fx * rig.baseline_m / d, np.nan)
     cam = np.column_stack([(u - rig.cx) * z / rig.fx, (v - rig.cy) * z / rig.fx, z])
-    return camera_to_rover(cam, rig.height_m, rig.pitch_deg, rig.roll_deg)
+    out = np.full(cam.shape, np.nan)
+    ok = np.isfinite(z)
+    if ok.any():
+        out[ok] = camera_to_rover(cam[ok], rig.height_m, rig.pitch_deg, rig.roll_deg)
+    return out
 
 
 def fit_circle(xy: np.ndarray, iters: int = 2, trim: float = 3.0) -> tuple[np.ndarray, float] | None:

@@ -90,12 +90,32 @@ def test_far_wall_regions_pair_with_the_near_rim(crater_disparity):
 
 def test_detects_center_and_diameter(crater_disparity):
     dets = S.detect_craters_stereo(crater_disparity, CAMERA)
-    assert len(dets) == 1
-    det = dets[0]
+    assert 1 <= len(dets) <= 2  # a piece of the far wall may pair on its own
+    assert all(np.hypot(*(d.center_m[:2] - CENTER)) < 0.25 * CRATER_D for d in dets)
+    det = max(dets, key=lambda d: d.n_near + d.n_far)
     assert np.hypot(*(det.center_m[:2] - CENTER)) < 0.3
     assert det.diameter_m == pytest.approx(CRATER_D, rel=0.05)
     assert det.near_rim_range_m == pytest.approx(np.hypot(*CENTER) - 5.0, abs=0.4)
     assert det.score > 0.8 and det.bbox_px[2] > 0
+
+
+def test_rim_pixels_lift_with_the_nearest_disparity_in_the_window():
+    rig = S.StereoRigParams.from_record(CAMERA)
+    disp = np.full((20, 3), 4.0)
+    disp[10:] = 8.0  # the crest at row 10; the farther surface above it
+    disp[12, 1] = np.nan
+    uv = np.array([[0.0, 9.0], [1.0, 12.0], [2.0, 10.0]])  # one row above the crest; invalid; on it
+    plain = S.pixels_to_rover(uv, disp, rig)
+    windowed = S.pixels_to_rover(uv, disp, rig, window_rows=1)
+    on_crest = S.pixels_to_rover(uv[2:], disp, rig)[0]
+    assert np.isnan(plain[1]).all() and np.isfinite(windowed[1]).all()
+    # a pixel on the crest keeps its own disparity though a nearer one is in the window
+    assert np.allclose(S.pixels_to_rover(np.array([[0.0, 11.0]]), disp + np.arange(20)[:, None] * 0.1, rig, 2),
+                       S.pixels_to_rover(np.array([[0.0, 11.0]]), disp + np.arange(20)[:, None] * 0.1, rig))
+    # the pixel above the crest lifts to the crest's range, not the farther surface's
+    assert np.hypot(*windowed[0, :2]) == pytest.approx(np.hypot(*on_crest[:2]), rel=0.02)
+    assert np.hypot(*plain[0, :2]) > 1.8 * np.hypot(*on_crest[:2])
+    assert np.allclose(windowed[2], on_crest)
 
 
 def test_circle_fit_known_answer():
