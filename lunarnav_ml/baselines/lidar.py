@@ -58,6 +58,14 @@ class LidarConfig:
         height_tol_m: a voxel this far above a model point is "higher than the point", m.
         min_score: placements scoring below this (mean per model point, 0 = perfect, -1 = every
             point penalized) are rejected.
+        prior_search_m: each map crater is also searched for around its prior center, on a
+            grid of this half-width (m; 0 disables), and that placement wins when it scores
+            better than those around the Stage-2 estimates: far away a small crater's back
+            wall holds too few returns for Stage 1 (or a neighbouring wall's estimate claims
+            the map crater), while its shadow and rim still show in the voxel grid. Off by
+            default: the score alone does not tell a far crater from no crater (a flat scan
+            scores -0.16, far 5 m craters -0.07 to -0.11; BENCHMARKS.md).
+        prior_min_score: such prior-seeded placements must score at least this.
     """
 
     roi_m: float = 45.0
@@ -83,6 +91,8 @@ class LidarConfig:
     rim_search_m: float = 1.0
     height_tol_m: float = 0.15
     min_score: float = -0.3
+    prior_search_m: float = 0.0
+    prior_min_score: float = -0.3
 
 
 @dataclass(frozen=True)
@@ -141,8 +151,8 @@ class LidarDetection:
         diameter_m: the matched map crater's diameter (Stage 3) or the Stage-2 estimate, m.
         score: Stage-3 score (mean per model point, 0 best, -1 worst); NaN without a map.
         map_index: index of the matched map crater, or None without a map.
-        stage2_center_m: (3,) Stage-2 center estimate, m.
-        stage2_diameter_m: Stage-2 diameter estimate, m.
+        stage2_center_m: (3,) Stage-2 center estimate, m (NaN when found by the prior search).
+        stage2_diameter_m: Stage-2 diameter estimate, m (NaN likewise).
     """
 
     center_m: np.ndarray
@@ -319,13 +329,32 @@ def match_to_map(
         for k, mc in enumerate(map_craters):
             if not _is_candidate(scene, est, mc, cfg):
                 continue
-            center, score = fit_model(scene, est, mc, cfg)
+            center, score = fit_model(scene, est.center[:2], mc, cfg)
             if score < cfg.min_score or (k in best and best[k].score >= score):
                 continue
             stage2 = scene.frame.from_ground(est.center[None])[0]
             best[k] = LidarDetection(scene.frame.from_ground(center[None])[0], mc.diameter_m,
                                      score, k, stage2, est.diameter_m)
+    if cfg.prior_search_m > 0:
+        for k, mc in enumerate(map_craters):
+            det = _search_at_prior(scene, mc, k, cfg)
+            if det is not None and (k not in best or det.score > best[k].score):
+                best[k] = det
     return sorted(best.values(), key=lambda d: -d.score)
+
+
+def _search_at_prior(scene: _Scene, mc: MapCrater, k: int,
+                     cfg: LidarConfig) -> LidarDetection | None:
+    """Place map crater ``k`` around its prior center (None: outside the processed region or
+    scoring below ``prior_min_score``)."""
+    prior = scene.frame.to_ground(np.array([[mc.center_xy[0], mc.center_xy[1], 0.0]]))[0]
+    if np.hypot(*prior[:2]) + 0.5 * mc.diameter_m > cfg.roi_m:
+        return None
+    center, score = fit_model(scene, prior[:2], mc, cfg, half_width_m=cfg.prior_search_m)
+    if score < cfg.prior_min_score:
+        return None
+    out = scene.frame.from_ground(center[None])[0]
+    return LidarDetection(out, mc.diameter_m, score, k, np.full(3, np.nan), float("nan"))
 
 
 def _is_candidate(scene: _Scene, est: CraterEstimate, mc: MapCrater, cfg: LidarConfig) -> bool:
@@ -339,20 +368,26 @@ def _is_candidate(scene: _Scene, est: CraterEstimate, mc: MapCrater, cfg: LidarC
 
 
 def fit_model(
-    scene: _Scene, est: CraterEstimate, mc: MapCrater, cfg: LidarConfig
+    scene: _Scene, center_xy: np.ndarray, mc: MapCrater, cfg: LidarConfig,
+    half_width_m: float | None = None,
 ) -> tuple[np.ndarray, float]:
-    """Place the map crater's model on a coarse then a fine 2D grid around the estimate.
+    """Place the map crater's model on a coarse then a fine 2D grid around ``center_xy`` (a
+    Stage-2 estimate or a prior center, ground frame).
+
+    Args:
+        half_width_m: half-width of the coarse grid, m (default max(search_min_m,
+            search_frac D)).
 
     Returns:
         best center (3,) in the ground frame (m, z = rim crest) and its score.
     """
     profile = map_profile(mc)
     spacing = max(0.1, mc.diameter_m / 50.0)
-    model = ModelPoints.build(profile, spacing, est.center[:2], scene.sensor_h)
-    base = local_ground(scene, profile, est.center[:2])
-    half = max(cfg.search_min_m, cfg.search_frac * mc.diameter_m)
+    center = np.asarray(center_xy, float)[:2]
+    model = ModelPoints.build(profile, spacing, center, scene.sensor_h)
+    base = local_ground(scene, profile, center)
+    half = half_width_m or max(cfg.search_min_m, cfg.search_frac * mc.diameter_m)
     step = max(0.2, mc.diameter_m / 40.0)
-    center = est.center[:2]
     for half_w, st in ((half, step), (step, step / 4), (step / 4, step / 16)):
         g = np.arange(-half_w, half_w + 1e-9, st)
         offsets = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2) + center

@@ -58,6 +58,16 @@ def test_model_score_peaks_at_the_truth(scene):
     assert np.argmax(scores) == 0 and scores[0] > scores[1:].max() + 0.01
 
 
+def test_prior_search_finds_the_crater_stage1_misses(crater_scan):
+    prior = L.MapCrater((CENTER[0] + 1.0, CENTER[1] - 1.0), CRATER_D, DEPTH, PROFILE.rim_height_m)
+    blind = L.LidarConfig(min_cluster_points=10**6)  # Stage 1 finds no back wall at all
+    assert L.detect_craters_lidar(crater_scan, map_craters=[prior], config=blind) == []
+    cfg = L.LidarConfig(min_cluster_points=10**6, prior_search_m=2.5)
+    dets = L.detect_craters_lidar(crater_scan, map_craters=[prior], config=cfg)
+    assert len(dets) == 1 and np.hypot(*(dets[0].center_m[:2] - CENTER)) < 0.3
+    assert np.isnan(dets[0].stage2_diameter_m)
+
+
 def test_map_crater_far_from_prior_is_not_tried(crater_scan):
     far = L.MapCrater((CENTER[0] + 20.0, CENTER[1]), CRATER_D, DEPTH)
     assert L.detect_craters_lidar(crater_scan, map_craters=[far]) == []
