@@ -35,7 +35,7 @@ def detection_metrics(
         "threshold": threshold,
         "coco": coco_ap(gt, list(results)),
         "n_images": match.n_images,
-        "crater_pd_all": _nan_to_none(match.pd),
+        "crater_pd_all": atomic.finite_or_none(match.pd),
         "false_alarms_per_image": match.fa_per_image,
         "n_craters": int(match.hit.size),
     }
@@ -49,7 +49,7 @@ def _geometric_tables(gt: dict[str, Any], match: MatchResult) -> dict[str, Any]:
     rng = np.asarray([a.get("near_rim_range_m", np.nan) for a in match.gt], dtype=float)
     key_set = subset(match, (diam >= 5.0) & (rng <= 20.0))
     tables: dict[str, Any] = {
-        "crater_pd_D5_within20m": _nan_to_none(key_set.pd),
+        "crater_pd_D5_within20m": atomic.finite_or_none(key_set.pd),
         "n_craters_D5_within20m": int(key_set.hit.size),
         "pd_vs_range": {
             f"{lo:g}-{hi:g}": pd_by(subset(match, (diam >= lo) & (diam < hi)), "near_rim_range_m",
@@ -71,10 +71,6 @@ def _fold_azimuth(az: float) -> float:
     """Sun azimuth relative to the view direction folded to 0-180 deg (0 = in front)."""
     az = az % 360.0
     return 360.0 - az if az > 180.0 else az
-
-
-def _nan_to_none(x: float) -> float | None:
-    return None if np.isnan(x) else float(x)
 
 
 def write_report(metrics: dict[str, Any], out_dir: Path, title: str) -> dict[str, Path]:

@@ -32,7 +32,7 @@ from lunarnav_ml.geometry.ellipse import Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
 from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater
 from lunarnav_ml.geometry.stereo import SGBMStereo
-from lunarnav_ml.utils.atomic import write_figure, write_json, write_text
+from lunarnav_ml.utils.atomic import finite_or_none, write_figure, write_json, write_text
 from lunarnav_ml.utils.images import read_disparity
 
 PAPER_STEREO_3SIGMA_M = {5: 1.02, 10: 3.22, 15: 4.48, 20: 4.35}
@@ -236,7 +236,7 @@ def _eval_crater(left: np.ndarray, disp: np.ndarray, rig: StereoRig, ann: dict[s
     t2 = time.perf_counter()
     row.update(fit_s=t1 - t0, lift_s=t2 - t1, ellipse=ellipse.to_array().tolist(),
                fit_quality=quality, reason=res.reason if res.ok else f"lift:{res.reason}",
-               **{k: _or_none(getattr(res, k)) for k in
+               **{k: finite_or_none(getattr(res, k)) for k in
                   ("rim_residual_px", "rim_disparity_px", "crest_fraction")})
     if not res.ok:
         return row
@@ -246,11 +246,6 @@ def _eval_crater(left: np.ndarray, disp: np.ndarray, rig: StereoRig, ann: dict[s
             "diameter_err_m": res.diameter_m - diam,
             "sigma_h_m": res.horizontal_sigma_m, "sigma_d_m": float(np.sqrt(res.covariance[3, 3])),
             "rim_height_m": res.rim_height_m}
-
-
-def _or_none(x: float) -> float | None:
-    """A finite number, or None (JSON has no NaN)."""
-    return float(x) if np.isfinite(x) else None
 
 
 def _ellipse(left: np.ndarray, box: np.ndarray, ann: dict[str, Any],

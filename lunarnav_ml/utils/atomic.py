@@ -59,6 +59,11 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return write_bytes(path, text.encode("utf-8"))
 
 
+def finite_or_none(x: float) -> float | None:
+    """A finite number as a float, else None (JSON has no NaN or infinity)."""
+    return float(x) if np.isfinite(x) else None
+
+
 def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> Path:
     """Write ``obj`` as JSON to ``path`` atomically (numpy scalars and arrays are converted)."""
     return write_text(path, json.dumps(obj, indent=indent, default=_json_default) + "\n")
