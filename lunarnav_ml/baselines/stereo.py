@@ -358,6 +358,12 @@ def wall_regions(mask: np.ndarray, min_area: int) -> np.ndarray:
     return keep[labels]
 
 
+def jump_threshold(near_disparity: np.ndarray, cfg: StereoConfig) -> np.ndarray:
+    """Smallest disparity drop from a nearer surface that counts as a range discontinuity:
+    max(jump_px, jump_frac * the nearer disparity), px."""
+    return np.maximum(cfg.jump_px, cfg.jump_frac * near_disparity)
+
+
 def rim_discontinuities(disp: np.ndarray, cfg: StereoConfig) -> np.ndarray:
     """Near-side pixels of range discontinuities: going up a column, the disparity drops by
     more than max(jump_px, jump_frac * d), possibly across up to ``max_gap_rows`` invalid rows.
@@ -377,7 +383,7 @@ def rim_discontinuities(disp: np.ndarray, cfg: StereoConfig) -> np.ndarray:
     cols = np.broadcast_to(np.arange(w)[None, :], (h, w))
     d_below = np.where(near_gap, disp[np.minimum(below, h - 1), cols], np.nan)
     drop = d_below - disp
-    is_jump = near_gap & (drop > np.maximum(cfg.jump_px, cfg.jump_frac * d_below))
+    is_jump = near_gap & (drop > jump_threshold(d_below, cfg))
     rim = np.zeros((h, w), bool)
     rim[below[is_jump], cols[is_jump]] = True
     return rim
@@ -404,9 +410,8 @@ def _pair_and_fit(
     if score < cfg.min_pair_frac or len(near_uv) < 3:
         return None
     window = round(cfg.rim_window_rows * scale)
-    steps = (cfg.jump_px, cfg.jump_frac)
-    near = pixels_to_rover(np.asarray(near_uv, float), disp, rig, window, *steps)
-    far = pixels_to_rover(np.asarray(far_uv, float), disp, rig, window, *steps)
+    near = pixels_to_rover(np.asarray(near_uv, float), disp, rig, window, cfg)
+    far = pixels_to_rover(np.asarray(far_uv, float), disp, rig, window, cfg)
     pts = np.vstack([near, far])
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if len(pts) < 5:
@@ -457,16 +462,16 @@ def median_filter(disp: np.ndarray, valid: np.ndarray, ksize: int) -> np.ndarray
 
 
 def pixels_to_rover(uv: np.ndarray, disp: np.ndarray, rig: StereoRigParams,
-                    window_rows: int = 0, step_px: float = 0.6,
-                    step_frac: float = 0.06) -> np.ndarray:
+                    window_rows: int = 0, config: StereoConfig | None = None) -> np.ndarray:
     """Lift pixels with their disparity to the rover frame (NaN where the disparity is
     invalid).
 
     With ``window_rows`` > 0 a pixel on the far side of a range discontinuity is moved to its
     near side: when the largest valid disparity within that many rows of it in its column
-    exceeds its own by more than max(step_px, step_frac * that disparity) (or its own is
-    invalid), it takes that largest one. A rim pixel whose disparity is the farther surface's
-    (matching at an occluding crest) then lifts to the crest; one on the crest keeps its own.
+    exceeds its own by a jump (:func:`jump_threshold` with ``config``, default settings), or
+    its own is invalid, it takes that largest one. A rim pixel whose disparity is the farther
+    surface's (matching at an occluding crest) then lifts to the crest; one on the crest keeps
+    its own.
 
     Shape:
         uv: (N, 2) px (column, row) -> (N, 3) m.
@@ -478,7 +483,7 @@ def pixels_to_rover(uv: np.ndarray, disp: np.ndarray, rig: StereoRigParams,
         around = disp[np.clip(rows, 0, disp.shape[0] - 1), u.astype(int)[:, None]]
         best = np.max(np.where(np.isfinite(around), around, -np.inf), axis=1)
         with np.errstate(invalid="ignore"):
-            far_side = ~np.isfinite(d) | (best - d > np.maximum(step_px, step_frac * best))
+            far_side = ~np.isfinite(d) | (best - d > jump_threshold(best, config or StereoConfig()))
         d = np.where(far_side & np.isfinite(best), best, d)
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(d > 0, rig.fx * rig.baseline_m / d, np.nan)
