@@ -34,11 +34,11 @@ DIAMETERS = ("5.0", "10.0", "15.0", "20.0")
 def apply_gate(rows: list[dict[str, Any]], abs_px: float, rel: float,
                min_crest: float) -> list[dict[str, Any]]:
     """Rows with ``ok`` cleared where a lift fails this gate."""
+    cfg = LifterConfig(max_rim_residual_px=abs_px, max_rim_residual_rel=rel)
     out = []
     for r in rows:
         r = dict(r)
         if r["ok"]:
-            cfg = LifterConfig(max_rim_residual_px=abs_px, max_rim_residual_rel=rel)
             r["ok"] = (r["rim_residual_px"] <= cfg.residual_limit_px(r["rim_disparity_px"])
                        and (r["crest_fraction"] or 0.0) >= min_crest)
         out.append(r)

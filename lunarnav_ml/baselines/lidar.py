@@ -64,8 +64,8 @@ class LidarConfig:
             wall holds too few returns for Stage 1 (or a neighbouring wall's estimate claims
             the map crater), while its shadow and rim still show in the voxel grid. Off by
             default: the score alone does not tell a far crater from no crater (a flat scan
-            scores -0.16, far 5 m craters -0.07 to -0.11; BENCHMARKS.md).
-        prior_min_score: such prior-seeded placements must score at least this.
+            scores -0.16, far 5 m craters -0.07 to -0.11; BENCHMARKS.md). These placements
+            face the same ``min_score``.
     """
 
     roi_m: float = 45.0
@@ -92,7 +92,6 @@ class LidarConfig:
     height_tol_m: float = 0.15
     min_score: float = -0.3
     prior_search_m: float = 0.0
-    prior_min_score: float = -0.3
 
 
 @dataclass(frozen=True)
@@ -346,12 +345,12 @@ def match_to_map(
 def _search_at_prior(scene: _Scene, mc: MapCrater, k: int,
                      cfg: LidarConfig) -> LidarDetection | None:
     """Place map crater ``k`` around its prior center (None: outside the processed region or
-    scoring below ``prior_min_score``)."""
+    scoring below ``min_score``)."""
     prior = scene.frame.to_ground(np.array([[mc.center_xy[0], mc.center_xy[1], 0.0]]))[0]
     if np.hypot(*prior[:2]) + 0.5 * mc.diameter_m > cfg.roi_m:
         return None
     center, score = fit_model(scene, prior[:2], mc, cfg, half_width_m=cfg.prior_search_m)
-    if score < cfg.prior_min_score:
+    if score < cfg.min_score:
         return None
     out = scene.frame.from_ground(center[None])[0]
     return LidarDetection(out, mc.diameter_m, score, k, np.full(3, np.nan), float("nan"))
