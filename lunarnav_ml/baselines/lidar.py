@@ -58,14 +58,17 @@ class LidarConfig:
         height_tol_m: a voxel this far above a model point is "higher than the point", m.
         min_score: placements scoring below this (mean per model point, 0 = perfect, -1 = every
             point penalized) are rejected.
-        prior_search_m: each map crater is also searched for around its prior center, on a
-            grid of this half-width (m; 0 disables), and that placement wins when it scores
-            better than those around the Stage-2 estimates: far away a small crater's back
-            wall holds too few returns for Stage 1 (or a neighbouring wall's estimate claims
-            the map crater), while its shadow and rim still show in the voxel grid. Off by
-            default: the score alone does not tell a far crater from no crater (a flat scan
-            scores -0.16, far 5 m craters -0.07 to -0.11; BENCHMARKS.md). These placements
-            face the same ``min_score``.
+        prior_search_m: a map crater that no Stage-2 estimate matched is also searched for
+            around its prior center, on a grid of this half-width (m; 0 disables): far away
+            a small crater's back wall holds too few returns for Stage 1, while its shadow and
+            rim still show in the voxel grid. Such a placement must pass ``min_score`` and the
+            shadow test below. Off by default: the placements it recovers sit 0.2-0.6 m
+            toward the sensor and widen the 3-sigma error of far 5 m craters (BENCHMARKS.md).
+        min_shadow_contrast, min_shadow_expected: a prior-search placement is kept when its
+            shadow columns are emptier than the same ranges beside the crater
+            (:func:`shadow_contrast` at least this) over at least this many occupied twin
+            columns. A flat scan scores about -0.16, no worse than a far 5 m crater, but its
+            contrast stays below 0.5 (far craters: 0.9-1.0).
     """
 
     roi_m: float = 45.0
@@ -92,6 +95,8 @@ class LidarConfig:
     height_tol_m: float = 0.15
     min_score: float = -0.3
     prior_search_m: float = 0.0
+    min_shadow_contrast: float = 0.6
+    min_shadow_expected: int = 10
 
 
 @dataclass(frozen=True)
@@ -336,8 +341,7 @@ def match_to_map(
                                      score, k, stage2, est.diameter_m)
     if cfg.prior_search_m > 0:
         for k, mc in enumerate(map_craters):
-            det = _search_at_prior(scene, mc, k, cfg)
-            if det is not None and (k not in best or det.score > best[k].score):
+            if k not in best and (det := _search_at_prior(scene, mc, k, cfg)) is not None:
                 best[k] = det
     return sorted(best.values(), key=lambda d: -d.score)
 
@@ -352,8 +356,46 @@ def _search_at_prior(scene: _Scene, mc: MapCrater, k: int,
     center, score = fit_model(scene, prior[:2], mc, cfg, half_width_m=cfg.prior_search_m)
     if score < cfg.min_score:
         return None
+    model = ModelPoints.build(map_profile(mc), max(0.1, mc.diameter_m / 50.0), center[:2],
+                              scene.sensor_h)
+    contrast, expected = shadow_contrast(scene, model, center[:2], mc.diameter_m)
+    if expected < cfg.min_shadow_expected or contrast < cfg.min_shadow_contrast:
+        return None
     out = scene.frame.from_ground(center[None])[0]
     return LidarDetection(out, mc.diameter_m, score, k, np.full(3, np.nan), float("nan"))
+
+
+TWIN_OFFSET = 1.25  # lateral offset of the twin columns of shadow_contrast, in diameters
+
+
+def shadow_contrast(scene: _Scene, model: ModelPoints, center_xy: np.ndarray,
+                    diameter_m: float) -> tuple[float, int]:
+    """How much emptier the model's shadow is than the same ranges beside the crater.
+
+    Far away the rings on flat ground are metres apart, so most columns are empty whether a
+    crater hides them or not. Each shadow column is compared with its twins: the columns at
+    the same range from the sensor, turned about it so they sit ``TWIN_OFFSET`` D to either
+    side of the crater, where the rings of open ground pass. A crater leaves its shadow
+    columns empty where the twins hold returns; open ground fills both about alike (0.3-0.5
+    on the analytic flat scan: the placement search picks the emptiest spot, and a tilted
+    spin axis spaces the rings differently with azimuth).
+
+    Returns:
+        1 - (occupied shadow columns / occupied twins), and the number of occupied twins
+        (0: no ring reaches those ranges and the test says nothing; contrast NaN).
+    """
+    pts = model.shadow[:, :2] + np.asarray(center_xy, float)
+    if len(pts) == 0:
+        return float("nan"), 0
+    turn = TWIN_OFFSET * diameter_m / max(float(np.hypot(*center_xy)), diameter_m)
+    occupied = np.isfinite(scene.columns.lookup(pts)).sum()
+    twins = 0
+    for a in (turn, -turn):
+        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        twins += np.isfinite(scene.columns.lookup(pts @ rot.T)).sum()
+    if twins == 0:
+        return float("nan"), 0
+    return float(1.0 - 2.0 * occupied / twins), int(twins)
 
 
 def _is_candidate(scene: _Scene, est: CraterEstimate, mc: MapCrater, cfg: LidarConfig) -> bool:

@@ -68,6 +68,23 @@ def test_prior_search_finds_the_crater_stage1_misses(crater_scan):
     assert np.isnan(dets[0].stage2_diameter_m)
 
 
+def test_prior_search_rejects_open_ground(flat_scan, crater_scan):
+    """On a flat scan the best placement still finds a fair score between the rings; the
+    shadow contrast (its shadow is no emptier than the same ranges beside it) rejects it."""
+    cfg = L.LidarConfig(prior_search_m=2.5)
+    mc = L.MapCrater(tuple(CENTER), CRATER_D, DEPTH)
+    scene = L.prepare_scene(flat_scan, SENSOR, cfg)
+    center, score = L.fit_model(scene, CENTER, mc, cfg, half_width_m=2.5)
+    assert score >= cfg.min_score  # the score alone would accept it
+    model = L.ModelPoints.build(L.map_profile(mc), 0.2, center[:2], scene.sensor_h)
+    contrast, expected = L.shadow_contrast(scene, model, center[:2], CRATER_D)
+    assert expected >= cfg.min_shadow_expected and contrast < cfg.min_shadow_contrast
+    assert L.detect_craters_lidar(flat_scan, map_craters=[mc], config=cfg) == []
+    crater = L.prepare_scene(crater_scan, SENSOR, cfg)
+    model = L.ModelPoints.build(L.map_profile(mc), 0.2, CENTER, crater.sensor_h)
+    assert L.shadow_contrast(crater, model, CENTER, CRATER_D)[0] > 0.9
+
+
 def test_map_crater_far_from_prior_is_not_tried(crater_scan):
     far = L.MapCrater((CENTER[0] + 20.0, CENTER[1]), CRATER_D, DEPTH)
     assert L.detect_craters_lidar(crater_scan, map_craters=[far]) == []
