@@ -11,6 +11,12 @@ Accuracy (a trained checkpoint; calibration images from a split other than the t
     .venv/bin/python benchmarks/bench_runtime.py accuracy --checkpoint best.ckpt \\
         --test data/test/annotations.json --calib data/val
 
+Input size on larger frames (the network is fully convolutional; which input side detects
+best on, say, 1024 px frames, with its latency; choose on a split other than the test set):
+
+    .venv/bin/python benchmarks/bench_runtime.py input-size --checkpoint small.pt \
+        --test <dev set>/annotations.json --sizes 384 512 768 1024
+
 Latency is end to end per image (letterbox + network + decoding + NMS at score 0.25), batch 1,
 median and p90 over ``--runs`` calls after warm-up. GFLOP/s = conv FLOPs (2 per MAC) / median.
 """
@@ -135,6 +141,30 @@ def run_accuracy(args: argparse.Namespace) -> None:
                               "seconds": round(time.perf_counter() - t0, 1)}), flush=True)
 
 
+def run_input_size(args: argparse.Namespace) -> None:
+    """AP50 per class and onnxruntime fp32 latency of one checkpoint at several input sides
+    on a set of frames (letterboxed to each side)."""
+    from lunarnav_ml.eval.coco_metrics import coco_ap
+    from lunarnav_ml.eval.predict import predict_coco
+    from lunarnav_ml.runtime import OnnxDetector
+
+    gt = json.loads(args.test.read_text())
+    with tempfile.TemporaryDirectory() as tmp:
+        fp32 = export_onnx(args.checkpoint, Path(tmp) / "model.onnx")
+        for size in args.sizes:
+            t0 = time.perf_counter()
+            results = predict_coco(OnnxDetector(fp32, args.threads, img_size=size), gt,
+                                   args.test.parent, progress=False)
+            ap = coco_ap(gt, results)
+            lat = bench_onnx(fp32, size, args.threads, runs=args.runs)
+            print(json.dumps({"img_size": size, "images": len(gt["images"]),
+                              **{f"{k}_AP50": v["AP50"] for k, v in ap["per_class"].items()},
+                              "crater_AP": ap["per_class"]["crater"]["AP"],
+                              "latency_ms_median": round(lat.median_ms, 1),
+                              "threads": args.threads,
+                              "seconds": round(time.perf_counter() - t0, 1)}), flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="mode", required=True)
@@ -156,6 +186,13 @@ def main() -> None:
     acc.add_argument("--calib", type=Path, required=True, help="calibration dataset folder")
     acc.add_argument("--n-calib", type=int, default=32)
     acc.set_defaults(func=run_accuracy)
+    ins = sub.add_parser("input-size", help="AP50 and latency of one model at several input sides")
+    ins.add_argument("--checkpoint", type=Path, required=True)
+    ins.add_argument("--test", type=Path, required=True, help="annotations.json of the frames")
+    ins.add_argument("--sizes", type=int, nargs="+", default=[384, 512, 768, 1024])
+    ins.add_argument("--threads", type=int, default=1)
+    ins.add_argument("--runs", type=int, default=5)
+    ins.set_defaults(func=run_input_size)
     args = parser.parse_args()
     args.func(args)
 

@@ -12,7 +12,7 @@ import torch
 
 from lunarnav_ml.data.coco import default_class_names
 from lunarnav_ml.data.letterbox import LetterboxInfo, letterbox
-from lunarnav_ml.errors import InputError
+from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.models import YOLO, build_model, decode, postprocess
 from lunarnav_ml.training.checkpoint import read_checkpoint, save_slim
 
@@ -34,6 +34,18 @@ class Detector:
         self.img_size = int(img_size)
         self.class_names = list(class_names)
         self.preset = preset
+
+    def set_img_size(self, img_size: int) -> None:
+        """Run at another square input side (the network is fully convolutional).
+
+        Raises:
+            ConfigError: not a positive multiple of the largest stride.
+        """
+        step = max(self.strides)
+        if isinstance(img_size, bool) or not isinstance(img_size, int) or img_size <= 0 \
+                or img_size % step:
+            raise ConfigError(f"img_size: expected a positive multiple of {step}, got {img_size!r}")
+        self.img_size = img_size
 
     @property
     def anchors(self) -> torch.Tensor:

@@ -31,6 +31,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--iou", type=float, default=0.6, help="NMS IoU threshold")
     p.add_argument("--overlay-conf", type=float, default=0.25, help="score threshold drawn")
     p.add_argument("--batch", type=int, default=8, help="images per forward pass")
+    p.add_argument("--img-size", type=int, default=None,
+                   help="network input side, px (a multiple of the largest stride, 32); "
+                        "default the size the model was trained at. Larger frames than the "
+                        "training renders often detect better at a larger input (BENCHMARKS.md)")
     p.add_argument("--gallery", type=int, default=12,
                    help="overlays in gallery.png, spread over the images (0: no gallery)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -63,6 +67,8 @@ def run_detect(args: argparse.Namespace) -> int:
         raise ConfigError(f"no --weights given and no shipped weights at {weights}")
     files = list_images(args.source)
     detector = load_detector(weights)
+    if args.img_size is not None:
+        detector.set_img_size(args.img_size)
     out = detect_files(detector, files, args.out, conf_thres=args.conf, iou_thres=args.iou,
                        overlay_thres=args.overlay_conf, batch=args.batch,
                        progress=not args.quiet, gallery=args.gallery)

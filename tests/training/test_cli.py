@@ -50,6 +50,26 @@ def test_detect_gallery_size_and_off(weights, tiny_coco, tmp_path):
         args.func(args)
 
 
+def test_detect_at_another_input_size(weights, tiny_coco, tmp_path):
+    folder = tiny_coco["val"].parent / "images" / "left"
+    runs = {}
+    for size in (None, 128):
+        out = tmp_path / str(size)
+        argv = ["detect", str(folder), "--weights", str(weights), "--out", str(out), "--quiet",
+                "--gallery", "0"] + ([] if size is None else ["--img-size", str(size)])
+        args = _parser().parse_args(argv)
+        assert args.func(args) == 0
+        runs[size] = json.loads((out / "results.json").read_text())
+    width = cv2.imread(str(sorted(folder.glob("*.png"))[0])).shape[1]
+    boxes = np.array([r["bbox"] for r in runs[128]])
+    assert len(boxes) and boxes[:, 0].min() >= -1 and (boxes[:, 0] + boxes[:, 2]).max() <= width + 1
+    assert runs[128] != runs[None]  # the network really ran at the other size
+    args = _parser().parse_args(["detect", str(folder), "--weights", str(weights),
+                                 "--img-size", "100"])
+    with pytest.raises(ConfigError, match="img_size: expected a positive multiple of 32"):
+        args.func(args)
+
+
 def test_gallery_indices_spread_over_files():
     assert detect.gallery_indices(100, 5) == {0, 25, 50, 74, 99}
     assert detect.gallery_indices(3, 12) == {0, 1, 2}
