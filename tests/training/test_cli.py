@@ -60,7 +60,7 @@ def test_detect_at_another_input_size(weights, tiny_coco, tmp_path):
         args = _parser().parse_args(argv)
         assert args.func(args) == 0
         runs[size] = json.loads((out / "results.json").read_text())
-    width = cv2.imread(str(sorted(folder.glob("*.png"))[0])).shape[1]
+    width = cv2.imread(str(min(folder.glob("*.png")))).shape[1]
     boxes = np.array([r["bbox"] for r in runs[128]])
     assert len(boxes) and boxes[:, 0].min() >= -1 and (boxes[:, 0] + boxes[:, 2]).max() <= width + 1
     assert runs[128] != runs[None]  # the network really ran at the other size
