@@ -33,15 +33,19 @@ def load_json(path: Path, what: str) -> Any:
         raise InputError(f"{path}: {what} is not valid JSON ({err})") from err
 
 
-def load_predictor(path: Path, threads: int) -> Any:
-    """An ONNX file runs through the torch-free runtime; anything else loads as a checkpoint."""
+def load_predictor(path: Path, threads: int, img_size: int | None = None) -> Any:
+    """An ONNX file runs through the torch-free runtime; anything else loads as a checkpoint.
+    ``img_size``: network input side (default the model's own)."""
     if Path(path).suffix == ".onnx":
         from lunarnav_ml.runtime import OnnxDetector
 
-        return OnnxDetector(path, threads=threads)
+        return OnnxDetector(path, threads=threads, img_size=img_size)
     from lunarnav_ml.training.api import load_detector
 
-    return load_detector(path)
+    detector = load_detector(path)
+    if img_size is not None:
+        detector.set_img_size(img_size)
+    return detector
 
 
 def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]]:
@@ -56,7 +60,7 @@ def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]
         return gt, load_json(results_path, "detections")
     if args.model is None:
         raise InputError(f"eval: give --model or --{split}-results for the {split} split")
-    predictor = load_predictor(args.model, args.threads)
+    predictor = load_predictor(args.model, args.threads, args.img_size)
     return gt, predict_coco(predictor, gt, gt_path.parent, desc=split, progress=not args.no_progress)
 
 
@@ -128,7 +132,8 @@ def run_transfer(args: argparse.Namespace) -> int:
     if args.test_results is not None:
         results = load_json(args.test_results, "detections")
     else:  # load_predictor runs .onnx files through onnxruntime, checkpoints through torch
-        predictor = load_predictor(args.onnx or args.checkpoint or args.model, args.threads)
+        predictor = load_predictor(args.onnx or args.checkpoint or args.model, args.threads,
+                                   args.img_size)
         results = predict_coco(predictor, gt, gt_path.parent, desc="transfer",
                                progress=not args.no_progress)
     with atomic.atomic_dir(args.out) as work:
@@ -170,6 +175,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-fa", type=float, default=0.2,
                    help="false alarms per image allowed at the operating threshold")
     p.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    p.add_argument("--img-size", type=int, default=None,
+                   help="(detection, transfer) network input side, px; default the model's")
     p.add_argument("--overlays", type=int, default=12, help="overlay images to write")
     p.add_argument("--ellipse-source", choices=("fit", "label", "box"), default="fit",
                    help="(geometry) the fitted ellipse, the labelled one (isolates stereo + "
