@@ -70,6 +70,15 @@ def test_detect_at_another_input_size(weights, tiny_coco, tmp_path):
         args.func(args)
 
 
+def test_eval_loads_the_model_at_another_input_size(weights):
+    from lunarnav_ml.eval.cli import load_predictor
+
+    assert load_predictor(weights, 1).img_size != 128
+    assert load_predictor(weights, 1, 128).img_size == 128
+    with pytest.raises(ConfigError, match="img_size"):
+        load_predictor(weights, 1, 130)
+
+
 def test_gallery_indices_spread_over_files():
     assert detect.gallery_indices(100, 5) == {0, 25, 50, 74, 99}
     assert detect.gallery_indices(3, 12) == {0, 1, 2}
