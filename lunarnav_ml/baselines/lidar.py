@@ -68,7 +68,7 @@ class LidarConfig:
             shadow columns are emptier than the same ranges beside the crater
             (:func:`shadow_contrast` at least this) over at least this many occupied twin
             columns. A flat scan scores about -0.16, no worse than a far 5 m crater, but its
-            contrast stays below 0.5 (far craters: 0.9-1.0).
+            contrast stays below 0.5 (far 5 m craters of the development renders: >= 0.75).
     """
 
     roi_m: float = 45.0
