@@ -356,8 +356,7 @@ def _search_at_prior(scene: _Scene, mc: MapCrater, k: int,
     center, score = fit_model(scene, prior[:2], mc, cfg, half_width_m=cfg.prior_search_m)
     if score < cfg.min_score:
         return None
-    model = ModelPoints.build(map_profile(mc), max(0.1, mc.diameter_m / 50.0), center[:2],
-                              scene.sensor_h)
+    model = map_model(mc, center[:2], scene.sensor_h)
     contrast, expected = shadow_contrast(scene, model, center[:2], mc.diameter_m)
     if expected < cfg.min_shadow_expected or contrast < cfg.min_shadow_contrast:
         return None
@@ -423,11 +422,11 @@ def fit_model(
         best center (3,) in the ground frame (m, z = rim crest) and its score.
     """
     profile = map_profile(mc)
-    spacing = max(0.1, mc.diameter_m / 50.0)
     center = np.asarray(center_xy, float)[:2]
-    model = ModelPoints.build(profile, spacing, center, scene.sensor_h)
+    model = map_model(mc, center, scene.sensor_h)
     base = local_ground(scene, profile, center)
-    half = half_width_m or max(cfg.search_min_m, cfg.search_frac * mc.diameter_m)
+    half = (max(cfg.search_min_m, cfg.search_frac * mc.diameter_m) if half_width_m is None
+            else half_width_m)
     step = max(0.2, mc.diameter_m / 40.0)
     for half_w, st in ((half, step), (step, step / 4), (step / 4, step / 16)):
         g = np.arange(-half_w, half_w + 1e-9, st)
@@ -441,6 +440,12 @@ def map_profile(mc: MapCrater) -> CraterProfile:
     """The parametric model of a map crater (floor depth = crest-to-floor depth - rim)."""
     rim = RIM_RATIO * mc.diameter_m if mc.rim_height_m is None else mc.rim_height_m
     return CraterProfile(mc.diameter_m, max(mc.depth_m - rim, 0.0), rim)
+
+
+def map_model(mc: MapCrater, center_xy: np.ndarray, sensor_h: float) -> ModelPoints:
+    """The map crater's model sampled every D / 50 (at least 0.1 m), its points classified as
+    seen from the sensor with the crater at ``center_xy`` (ground frame, m)."""
+    return ModelPoints.build(map_profile(mc), max(0.1, mc.diameter_m / 50.0), center_xy, sensor_h)
 
 
 def local_ground(scene: _Scene, profile: CraterProfile, center_xy: np.ndarray) -> float:
