@@ -42,10 +42,7 @@ def load_predictor(path: Path, threads: int, img_size: int | None = None) -> Any
         return OnnxDetector(path, threads=threads, img_size=img_size)
     from lunarnav_ml.training.api import load_detector
 
-    detector = load_detector(path)
-    if img_size is not None:
-        detector.set_img_size(img_size)
-    return detector
+    return load_detector(path, img_size)
 
 
 def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]]:

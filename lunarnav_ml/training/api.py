@@ -129,8 +129,13 @@ class Detector:
         return save_slim(path, self.config, self.model, half=half)
 
 
-def load_detector(path: str | Path) -> Detector:
-    """Load a detector from a Lightning ``.ckpt`` (EMA weights) or a slim ``.pt`` file."""
+def load_detector(path: str | Path, img_size: int | None = None) -> Detector:
+    """Load a detector from a Lightning ``.ckpt`` (EMA weights) or a slim ``.pt`` file.
+
+    Args:
+        img_size: network input side to run at (:meth:`Detector.set_img_size`); default the
+            size recorded in the checkpoint (the training size).
+    """
     config, state = read_checkpoint(path)
     missing = [k for k in ("preset", "num_classes", "img_size") if config.get(k) is None]
     if missing:
@@ -143,7 +148,10 @@ def load_detector(path: str | Path) -> Detector:
                          ) from err
     # checkpoints from before the module recorded its names trained with the defaults
     names = config.get("class_names") or default_class_names(config["num_classes"])
-    return Detector(model, config["img_size"], names, config["preset"])
+    detector = Detector(model, config["img_size"], names, config["preset"])
+    if img_size is not None:
+        detector.set_img_size(img_size)
+    return detector
 
 
 def fit_detector(train_ann: str | Path | list, val_ann: str | Path, out_dir: str | Path, *,

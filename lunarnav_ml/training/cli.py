@@ -66,9 +66,7 @@ def run_detect(args: argparse.Namespace) -> int:
     if args.weights is None and not weights.is_file():
         raise ConfigError(f"no --weights given and no shipped weights at {weights}")
     files = list_images(args.source)
-    detector = load_detector(weights)
-    if args.img_size is not None:
-        detector.set_img_size(args.img_size)
+    detector = load_detector(weights, args.img_size)
     out = detect_files(detector, files, args.out, conf_thres=args.conf, iou_thres=args.iou,
                        overlay_thres=args.overlay_conf, batch=args.batch,
                        progress=not args.quiet, gallery=args.gallery)
