@@ -12,7 +12,8 @@ Default method, "tangent" (no terrain model):
    column from the rows just below that edge (toward the camera: the side continuous with the
    crest, outside the matcher's smearing of the depth edge). The near-side ray at bearing theta
    meets the circle at horizontal range rho k(theta) with k known from the angles, less the
-   edge's offset in front of a rounded crest (``rim_offset`` of the radius), so
+   edge's offset in front of a rounded crest (``rim_offset`` of the radius plus
+   ``rim_offset_m``), so
    d_i = f B |q_i,h| / (rho k_i): one parameter 1 / rho fitted robustly (Huber IRLS) in
    disparity space, where matcher noise is uniform. Many rim pixels feed one number, so
    per-pixel noise averages out.
@@ -99,11 +100,16 @@ class LifterConfig:
             disparity jump from the far wall to the crest) found within this many rows, and
             within half the ellipse's height (clear of a small crater's far rim and of nearer
             rocks below it); 0 keeps the ellipse's own rows.
-        rim_offset: "tangent": the near rim's occluding edge lies this fraction of the radius
-            in front of the rim crest (a rounded rim seen from a rover's height grazes the
-            line of sight on its outer flank). 0.06: the median over the target craters of a
-            development render of the paper-stereo grid (seed 1, 5-20 m, D 5-20 m), measured
-            with the rendered disparity; not fitted on any evaluation set.
+        rim_offset, rim_offset_m: "tangent": the near rim's visible edge lies
+            ``rim_offset * r + rim_offset_m`` in front of the rim crest (r the radius; a
+            rounded rim seen from a rover's height grazes the line of sight on its outer
+            flank). A calibration of the whole chain, SGBM and crest search included, so it
+            also takes up the matcher's range bias at a crest (small craters' crests read
+            low, hence the negative metric term). 0.125 and -0.255 m: fitted by
+            ``benchmarks/calibrate_rim_offset.py`` (fitted ellipse, SGBM) on five shards of a
+            development render of the paper-stereo grid (seed 1, D 5-20 m, 5-20 m), checked
+            on a sixth; not fitted on any evaluation set. Recalibrate for another matcher,
+            rig or terrain. The geometric part alone (rendered disparity) was 0.06 r.
         corr_factor: variance inflation for neighbouring rim samples sharing matcher windows.
         ground_gap: rows skipped below the ellipse before the ground patch, times its height.
         ground_rows: the ground patch ends this many ellipse heights (+ 30 px) below it.
@@ -133,7 +139,8 @@ class LifterConfig:
     n_rim: int = 72
     tri_side: float = 0.2
     snap_px: int = 6
-    rim_offset: float = 0.06
+    rim_offset: float = 0.125
+    rim_offset_m: float = -0.255
     corr_factor: float = 2.0
     ground_gap: float = 0.5
     ground_rows: float = 4.0
@@ -487,14 +494,19 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
     delta = (np.arctan2(hor_crest[:, 1], hor_crest[:, 0]) - phi + np.pi) % (2 * np.pi) - np.pi
     k = np.cos(delta) - np.sqrt(np.clip(np.sin(alpha) ** 2 - np.sin(delta) ** 2, 0.0, None))
     k = k - cfg.rim_offset * np.sin(alpha)  # the visible edge lies in front of the crest
-    if np.any(k <= 0):
-        return LiftResult(False, "degenerate_circle")
-    # d_i = f B |q_i,h| / (rho k_i): linear in 1 / rho
-    coef = rig.focal_px * rig.baseline_m * np.linalg.norm(hor_crest, axis=1) / k
-    inv, var, n_used = _robust_linear(coef[:, None], d[ok])
-    if inv is None or inv[0] <= 0 or n_used < cfg.min_rim:
-        return LiftResult(False, "insufficient_rim_disparity", n_rim=int(ok.sum()))
-    rho = 1.0 / inv[0]
+    fb_q = rig.focal_px * rig.baseline_m * np.linalg.norm(hor_crest, axis=1)
+    # d_i = f B |q_i,h| / (rho k_i - offset_m): linear in 1 / rho once the metric offset is
+    # folded into k_i (offset_m / rho), which takes a few passes as rho settles
+    rho, k_i = None, k
+    for _ in range(3 if cfg.rim_offset_m else 1):
+        if np.any(k_i <= 0):
+            return LiftResult(False, "degenerate_circle")
+        coef = fb_q / k_i
+        inv, var, n_used = _robust_linear(coef[:, None], d[ok])
+        if inv is None or inv[0] <= 0 or n_used < cfg.min_rim:
+            return LiftResult(False, "insufficient_rim_disparity", n_rim=int(ok.sum()))
+        rho = 1.0 / inv[0]
+        k_i = k - cfg.rim_offset_m / rho
     resid = d[ok] - coef * inv[0]
     rstd = 1.4826 * float(np.median(np.abs(resid)))
     cam = q_crest * (rig.focal_px * rig.baseline_m / d[ok])[:, None]

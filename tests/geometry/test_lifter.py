@@ -6,6 +6,9 @@ from lunarnav_ml.geometry.ellipse import Ellipse, fit_crater_ellipse
 from lunarnav_ml.geometry.lifter import LifterConfig, _crest_row, _rim_disparities, lift_crater
 from lunarnav_ml.geometry.stereo import SGBMStereo
 
+# the helper's rims are sharp crests: the occluding edge is the crest itself
+SHARP = {"rim_offset": 0.0, "rim_offset_m": 0.0}
+
 
 def _true_disparity(sc) -> np.ndarray:
     return sc.rig.focal_px * sc.rig.baseline_m / sc.depth
@@ -21,7 +24,7 @@ def test_exact_inputs_recover_center_and_diameter(crater_scene, method):
     sc = crater_scene
     # the helper's rim is a sharp crest: its occluding edge is the crest itself
     res = lift_crater(sc.ellipse, _true_disparity(sc), sc.rig,
-                      LifterConfig(method=method, rim_offset=0.0))
+                      LifterConfig(method=method, **SHARP))
     assert res.ok, res.reason
     np.testing.assert_allclose(res.center_m, sc.center_rover, atol=0.05)
     assert res.diameter_m == pytest.approx(sc.crater.diameter, abs=0.05)
@@ -42,7 +45,10 @@ def test_rendered_crater_end_to_end(crater_scene, sgbm_disparity):
 def test_side_lit_10m_crater(crater_scene_side_sun):
     sc = crater_scene_side_sun
     disp = SGBMStereo(num_disparities=96)(sc.left, sc.right).disparity
-    res = lift_crater(fit_crater_ellipse(sc.left, sc.box).ellipse, disp, sc.rig)
+    # the helper's sharp crest: the default edge offsets, calibrated on the protocol renders'
+    # rounded rims, would put it 0.37 m too far for this radius
+    res = lift_crater(fit_crater_ellipse(sc.left, sc.box).ellipse, disp, sc.rig,
+                      LifterConfig(**SHARP))
     assert res.ok, res.reason
     assert np.hypot(*(res.center_m[:2] - sc.center_rover[:2])) < 0.4
     assert res.diameter_m == pytest.approx(sc.crater.diameter, abs=0.4)
@@ -137,18 +143,35 @@ def test_rim_offset_moves_the_center_away_by_about_the_offset(crater_scene):
     """The occluding edge in front of the crest by k R: the center moves ~k R / (1 - R / rho)."""
     sc = crater_scene
     disp = _true_disparity(sc)
-    sharp = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.0))
-    rounded = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.06))
+    sharp = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**SHARP))
+    rounded = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.06, rim_offset_m=0.0))
     assert sharp.ok and rounded.ok
     rho = np.hypot(*sharp.center_m[:2])
     expected = 0.06 * sc.crater.radius / (1 - sc.crater.radius / rho)
     assert np.hypot(*rounded.center_m[:2]) - rho == pytest.approx(expected, rel=0.3)
 
 
+def test_metric_rim_offset_moves_the_center_away_by_about_the_offset(crater_scene):
+    """An edge 0.3 m in front of the crest: the center moves ~0.3 / (1 - R / rho) away."""
+    sc = crater_scene
+    disp = _true_disparity(sc)
+    sharp = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**SHARP))
+    metric = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.0, rim_offset_m=0.3))
+    behind = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.0, rim_offset_m=-0.3))
+    assert sharp.ok and metric.ok and behind.ok
+    rho = np.hypot(*sharp.center_m[:2])
+    expected = 0.3 / (1 - sc.crater.radius / rho)
+    assert np.hypot(*metric.center_m[:2]) - rho == pytest.approx(expected, rel=0.3)
+    assert rho - np.hypot(*behind.center_m[:2]) == pytest.approx(expected, rel=0.3)
+    # the bearings do not change: the diameter scales with the range
+    assert metric.diameter_m / sharp.diameter_m == pytest.approx(
+        np.hypot(*metric.center_m[:2]) / rho, rel=1e-6)
+
+
 def test_rim_disparity_crest_fraction_and_the_relative_gate(crater_scene):
     sc = crater_scene
     disp = _true_disparity(sc)
-    exact = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.0))
+    exact = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**SHARP))
     assert exact.ok
     # the median of the true disparity at the labelled near-rim samples (a sharp crest)
     pts = sc.ellipse.points(72)

@@ -1,0 +1,45 @@
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lunarnav_ml.errors import LunarNavError
+
+_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "calibrate_rim_offset.py"
+_spec = importlib.util.spec_from_file_location("calibrate_rim_offset", _PATH)
+cal = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(cal)
+
+
+def _rows(offset_m: float, offset_frac: float, seed: int = 0) -> list[dict]:
+    """Lifts with no offset whose along-range error is what an edge ``offset_frac * r +
+    offset_m`` in front of the crest causes (plus a little noise and one failed lift)."""
+    rng = np.random.default_rng(seed)
+    rows = [{"ok": False, "diameter_m": 5.0}]
+    for d in (5.0, 10.0, 15.0, 20.0):
+        for _ in range(9):
+            r, rho, bearing = d / 2, rng.uniform(12, 25), rng.uniform(-0.6, 0.6)
+            k0 = 1 - r / rho
+            err = -(offset_m + offset_frac * r) / k0 + rng.normal(0, 0.02)
+            u = np.array([np.cos(bearing), np.sin(bearing)])
+            lateral = np.array([-u[1], u[0]]) * rng.normal(0, 0.1)
+            rows.append({"ok": True, "diameter_m": d, "near_rim_range_m": rho - r,
+                         "truth_center_m": [*(rho * u), 0.1],
+                         "center_err_xy_m": (err * u + lateral).tolist()})
+    return rows
+
+
+def test_recovers_a_known_offset():
+    radius, near, need = cal.needed_offsets(_rows(-0.25, 0.12))
+    assert len(need) == 36 and np.all(near > 0)
+    icpt, slope, per_r = cal.fit_offset(radius, need)
+    assert icpt == pytest.approx(-0.25, abs=0.03)
+    assert slope == pytest.approx(0.12, abs=0.005)
+    assert sorted(per_r) == [2.5, 5.0, 7.5, 10.0] and per_r[2.5][0] == 9
+
+
+def test_one_diameter_is_not_enough():
+    rows = [r for r in _rows(0.0, 0.06) if r["diameter_m"] == 5.0]
+    with pytest.raises(LunarNavError, match="two diameters"):
+        cal.fit_offset(*cal.needed_offsets(rows)[::2])
