@@ -94,7 +94,8 @@ def run_geometry(args: argparse.Namespace) -> int:
 
     detections = load_json(args.test_results, "detections") if args.test_results else None
     summary = geometry_report(Path(args.test_gt), args.out, detections=detections,
-                              ellipse_source=args.ellipse_source, disparity=args.disparity)
+                              ellipse_source=args.ellipse_source, disparity=args.disparity,
+                              progress=not args.no_progress)
     print(json.dumps(summary.get("summary", summary), indent=1, default=str)[:2000])
     return 0
 

@@ -57,6 +57,7 @@ def geometry_report(
     lifter: LifterConfig | None = None,
     fitter: EllipseFitter | None = None,
     plots: bool = True,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Evaluate crater geometry (3D center and diameter) on a stereo dataset folder.
 
@@ -75,6 +76,7 @@ def geometry_report(
         stereo, lifter, fitter: settings (defaults: SGBM sized to the image, LifterConfig(),
             EllipseFitter()).
         plots: write the PNG plots.
+        progress: tqdm bar over the images on stderr.
 
     Returns:
         The metrics dict written to ``geometry_metrics.json``.
@@ -99,8 +101,10 @@ def geometry_report(
             by_image[ann["image_id"]].append(ann)
     settings = _Settings(stereo, lifter or LifterConfig(), fitter or EllipseFitter(), ellipse_source,
                          disparity)
+    from tqdm import tqdm
+
     rows: list[dict[str, Any]] = []
-    for im in images:
+    for im in tqdm(images, desc="geometry", unit="img", disable=not progress):
         if by_image.get(im["id"]):
             rows.extend(_eval_image(ann_path.parent, im, by_image[im["id"]], dets.get(im["id"]),
                                     settings))
