@@ -497,7 +497,7 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
     fb_q = rig.focal_px * rig.baseline_m * np.linalg.norm(hor_crest, axis=1)
     # d_i = f B |q_i,h| / (rho k_i - offset_m): linear in 1 / rho once the metric offset is
     # folded into k_i (offset_m / rho), which takes a few passes as rho settles
-    rho, k_i = None, k
+    k_i = k
     for _ in range(3 if cfg.rim_offset_m else 1):
         if np.any(k_i <= 0):
             return LiftResult(False, "degenerate_circle")

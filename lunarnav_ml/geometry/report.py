@@ -25,6 +25,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.spread import horizontal_spread
@@ -101,8 +102,6 @@ def geometry_report(
             by_image[ann["image_id"]].append(ann)
     settings = _Settings(stereo, lifter or LifterConfig(), fitter or EllipseFitter(), ellipse_source,
                          disparity)
-    from tqdm import tqdm
-
     rows: list[dict[str, Any]] = []
     for im in tqdm(images, desc="geometry", unit="img", disable=not progress):
         if by_image.get(im["id"]):
