@@ -15,7 +15,7 @@ Input size on larger frames (the network is fully convolutional; which input sid
 best on, say, 1024 px frames, with its latency; choose on a split other than the test set):
 
     .venv/bin/python benchmarks/bench_runtime.py input-size --checkpoint small.pt \
-        --test <dev set>/annotations.json --sizes 384 512 768 1024
+        --test <dev set>/annotations.json --sizes 384 512 768 1024 [--calib <val split>]
 
 Latency is end to end per image (letterbox + network + decoding + NMS at score 0.25), batch 1,
 median and p90 over ``--runs`` calls after warm-up. GFLOP/s = conv FLOPs (2 per MAC) / median.
@@ -142,22 +142,28 @@ def run_accuracy(args: argparse.Namespace) -> None:
 
 
 def run_input_size(args: argparse.Namespace) -> None:
-    """AP50 per class and onnxruntime fp32 latency of one checkpoint at several input sides
-    on a set of frames (letterboxed to each side)."""
+    """AP50 per class and onnxruntime latency of one checkpoint at several input sides on a
+    set of frames (letterboxed to each side; the timed call letterboxes a frame of the set's
+    size), fp32 and, with ``--calib``, int8."""
     from lunarnav_ml.eval.coco_metrics import coco_ap
     from lunarnav_ml.eval.predict import predict_coco
     from lunarnav_ml.runtime import OnnxDetector
 
     gt = json.loads(args.test.read_text())
+    frame = max(max(im["width"], im["height"]) for im in gt["images"])
     with tempfile.TemporaryDirectory() as tmp:
-        fp32 = export_onnx(args.checkpoint, Path(tmp) / "model.onnx")
-        for size in args.sizes:
+        models = {"fp32": export_onnx(args.checkpoint, Path(tmp) / "model.onnx")}
+        if args.calib is not None:
+            calib = load_calibration_images(args.calib, args.n_calib)
+            models["int8"] = quantize_int8(models["fp32"], Path(tmp) / "int8.onnx", calib)
+        for (precision, path), size in ((m, s) for m in models.items() for s in args.sizes):
             t0 = time.perf_counter()
-            results = predict_coco(OnnxDetector(fp32, args.threads, img_size=size), gt,
+            results = predict_coco(OnnxDetector(path, args.threads, img_size=size), gt,
                                    args.test.parent, progress=False)
             ap = coco_ap(gt, results)
-            lat = bench_onnx(fp32, size, args.threads, runs=args.runs)
-            print(json.dumps({"img_size": size, "images": len(gt["images"]),
+            lat = bench_onnx(path, size, args.threads, runs=args.runs, frame_size=frame)
+            print(json.dumps({"precision": precision, "img_size": size, "frame": frame,
+                              "images": len(gt["images"]),
                               **{f"{k}_AP50": v["AP50"] for k, v in ap["per_class"].items()},
                               "crater_AP": ap["per_class"]["crater"]["AP"],
                               "latency_ms_median": round(lat.median_ms, 1),
@@ -192,6 +198,9 @@ def main() -> None:
     ins.add_argument("--sizes", type=int, nargs="+", default=[384, 512, 768, 1024])
     ins.add_argument("--threads", type=int, default=1)
     ins.add_argument("--runs", type=int, default=5)
+    ins.add_argument("--calib", type=Path, default=None,
+                     help="calibration dataset folder: also quantize and measure int8")
+    ins.add_argument("--n-calib", type=int, default=32)
     ins.set_defaults(func=run_input_size)
     args = parser.parse_args()
     args.func(args)

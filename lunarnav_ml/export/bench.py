@@ -66,19 +66,21 @@ def synthetic_frame(size: int, seed: int = 0) -> np.ndarray:
 
 
 def bench_onnx(path: str | os.PathLike, size: int, threads: int = 1, *, runs: int = 10,
-               warmup: int = 2, conf_thres: float = 0.25, network_only: bool = False
-               ) -> LatencyStats:
+               warmup: int = 2, conf_thres: float = 0.25, network_only: bool = False,
+               frame_size: int | None = None) -> LatencyStats:
     """Latency of an exported model on onnxruntime at a size x size input.
 
     Args:
         path: lunarnav ONNX file (fp32 or int8).
-        size: input side, px (the frame has that size, so letterbox does not resize).
+        size: input side, px.
         threads: onnxruntime intra-op threads.
         conf_thres: score threshold of the end-to-end NMS (the operating point).
         network_only: time ``session.run`` on a prepared input only.
+        frame_size: side of the camera frame, letterboxed to ``size`` inside the timed call
+            (default ``size``: no resize), e.g. a 1024 px frame read at 512.
     """
     det = OnnxDetector(path, threads=threads, img_size=size)
-    frame = synthetic_frame(size)
+    frame = synthetic_frame(frame_size or size)
     if network_only:
         batch, _ = det.preprocess([frame])
         return time_calls(lambda: det.forward(batch), runs, warmup)

@@ -8,14 +8,17 @@ from torch import nn
 
 
 def make_act(name: str) -> nn.Module:
-    """Activation by name: ``"mish"`` (YOLOv4 backbone), ``"leaky"`` (neck, head) or ``"silu"``."""
+    """Activation by name: ``"mish"`` (YOLOv4 backbone), ``"leaky"`` (neck, head), ``"relu"``
+    (int8-friendly: it folds into a quantized convolution) or ``"silu"``."""
     if name == "mish":
         return nn.Mish(inplace=True)
     if name == "leaky":
         return nn.LeakyReLU(0.1, inplace=True)
+    if name == "relu":
+        return nn.ReLU(inplace=True)
     if name == "silu":
         return nn.SiLU(inplace=True)
-    raise ValueError(f"unknown activation {name!r}; expected 'mish', 'leaky' or 'silu'")
+    raise ValueError(f"unknown activation {name!r}; expected 'mish', 'leaky', 'relu' or 'silu'")
 
 
 class ConvBNAct(nn.Sequential):

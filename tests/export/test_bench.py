@@ -56,6 +56,7 @@ def test_random_detector_has_live_activations():
 def test_bench_runs_both_runtimes(parts, onnx_path):
     assert bench_onnx(onnx_path, 64, runs=2, warmup=1).median_ms > 0
     assert bench_onnx(onnx_path, 64, runs=1, warmup=0, network_only=True).median_ms > 0
+    assert bench_onnx(onnx_path, 64, runs=1, warmup=0, frame_size=128).median_ms > 0
     assert bench_torch(parts, 64, runs=1, warmup=0).median_ms > 0
 
 

@@ -118,3 +118,30 @@ def test_calibration_images_from_a_dataset_folder(tmp_path):
 def _empty(tmp_path):
     (tmp_path / "empty").mkdir()
     return tmp_path / "empty"
+
+
+def _optimized_int8_ops(preset, tmp_path):
+    """Op counts of a preset's int8 model after onnxruntime's graph fusions."""
+    import collections
+
+    import onnxruntime as ort
+
+    from lunarnav_ml.export.bench import random_detector
+
+    fp32 = export_onnx(random_detector(preset, img_size=64, calib_batches=1),
+                       tmp_path / f"{preset}.onnx", img_size=64)
+    int8 = quantize_int8(fp32, tmp_path / f"{preset}_int8.onnx",
+                         [synthetic_frame(64, seed=s) for s in range(2)])
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+    options.optimized_model_filepath = str(tmp_path / f"{preset}_opt.onnx")
+    ort.InferenceSession(str(int8), options, providers=["CPUExecutionProvider"])
+    return collections.Counter(n.op_type for n in onnx.load(tmp_path / f"{preset}_opt.onnx").graph.node)
+
+
+def test_relu_folds_into_integer_convs_leaky_does_not(tmp_path):
+    # why small-relu is the onboard preset: its int8 graph has no activation operators left
+    leaky, relu = _optimized_int8_ops("small", tmp_path), _optimized_int8_ops("small-relu", tmp_path)
+    assert leaky["QLinearConv"] == relu["QLinearConv"] > 60
+    assert leaky["QLinearLeakyRelu"] == leaky["QLinearConv"]
+    assert not {op for op in relu if "Relu" in op or "LeakyRelu" in op}

@@ -52,3 +52,12 @@ def test_set_anchors_checks_shape():
     assert torch.equal(model.anchors, new)
     with pytest.raises(ValueError, match="shape"):
         model.set_anchors(torch.ones(2, 3, 2))
+
+
+def test_small_relu_is_small_with_relu_throughout():
+    small, relu = build_model("small"), build_model("small-relu")
+    assert count_parameters(relu) == count_parameters(small)
+    relu.load_state_dict(small.state_dict())  # the leaky small's weights start its fine-tuning
+    acts = {type(m) for m in relu.modules()
+            if isinstance(m, (torch.nn.ReLU, torch.nn.LeakyReLU, torch.nn.Mish))}
+    assert acts == {torch.nn.ReLU}
