@@ -7,6 +7,7 @@ Widths and depths scale the full YOLOv4 (CSPDarknet53: widths 32..1024, residual
 |---|---|---|---|---|---|
 | nano   | 0.33 | 0.25 | 2.75 M | 2.85 M | |
 | small  | 0.33 | 0.375 | 6.17 M | 6.33 M | |
+| small-relu | 0.33 | 0.375 | 6.17 M | 6.33 M | small with ReLU for int8 |
 | medium | 0.67 | 0.75 | 28.48 M | 28.79 M | |
 | yolov4 | 1.0  | 1.0  | 63.93 M | 64.34 M | darknet YOLOv4: 64.36 M |
 | tiny   | two heads | 1.0 | 5.88 M | 6.06 M | darknet YOLOv4-tiny: 6.06 M |
@@ -89,7 +90,8 @@ def build_model(preset: str = "nano", num_classes: int = 3, anchors=None) -> YOL
     """Build a detector of a named size.
 
     Args:
-        preset: one of ``PRESETS`` (``nano``, ``small``, ``medium``, ``yolov4``, ``tiny``).
+        preset: one of ``PRESETS`` (``nano``, ``small``, ``small-relu``, ``medium``, ``yolov4``,
+            ``tiny``).
         num_classes: number of classes K.
         anchors: :math:`(L, A, 2)` anchor (w, h) in input pixels (nested lists or tensor);
             default: the YOLOv4 (or YOLOv4-tiny) reference anchors.

@@ -6,6 +6,7 @@ weights and what is needed to rebuild the model (preset, classes, anchors, input
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -51,13 +52,21 @@ def _model_weights(path: Path, state: dict[str, torch.Tensor]) -> dict[str, torc
     raise InputError(f"{path}: the checkpoint holds no detector weights")
 
 
-def load_weights(model: nn.Module, path: str | Path) -> None:
+def load_weights(model: nn.Module, path: str | Path, preset: str | None = None) -> None:
     """Initialise ``model`` from a checkpoint (fine-tuning); shapes must match.
+
+    Args:
+        preset: the model's preset; when the checkpoint was trained as another one with the
+            same tensors (``small`` into ``small-relu``), a warning says so: the weights load,
+            but the network they meet computes something else until fine-tuned.
 
     Raises:
         InputError: the checkpoint's tensors do not fit the model (other preset or classes).
     """
-    _, state = read_checkpoint(path)
+    config, state = read_checkpoint(path)
+    if preset is not None and config.get("preset") not in (None, preset):
+        warnings.warn(f"{path}: weights of preset {config['preset']!r} start a {preset!r} model "
+                      "(same tensors, other activations)", stacklevel=2)
     own = model.state_dict()
     bad = [k for k, v in state.items() if k not in own or own[k].shape != v.shape]
     missing = [k for k in own if k not in state]

@@ -84,7 +84,7 @@ class DetectorModule(L.LightningModule):
     # ---- set-up -------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
         if self.hparams.init_from:
-            load_weights(self.model, self.hparams.init_from)
+            load_weights(self.model, self.hparams.init_from, self.hparams.preset)
             self.ema.module.load_state_dict(self.model.state_dict())
             self._anchors_ready = True
         if not self._anchors_ready and stage == "fit":

@@ -78,3 +78,18 @@ def test_finetune_rejects_other_preset(tiny_coco, tmp_path, trained):
     other, dm = _parts(tiny_coco, preset="tiny", init_from=str(trained[0]))
     with pytest.raises(InputError, match="weights do not fit this model"):
         _trainer(tmp_path / "b", 1, _Record()).fit(other, dm)
+
+
+def test_init_from_another_preset_with_the_same_tensors_warns(tmp_path):
+    import warnings
+
+    from lunarnav_ml.models import build_model
+    from lunarnav_ml.training.checkpoint import load_weights, save_slim
+
+    path = save_slim(tmp_path / "small.pt", {"preset": "small", "num_classes": 3},
+                     build_model("small"))
+    with pytest.warns(UserWarning, match="preset 'small' start a 'small-relu' model"):
+        load_weights(build_model("small-relu"), path, "small-relu")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_weights(build_model("small"), path, "small")
