@@ -12,7 +12,7 @@ from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
 WEIGHTS = Path(__file__).parents[2] / "lunarnav_ml" / "weights"
 
 
-@pytest.mark.parametrize(("name", "preset", "size"), [("small.pt", "small", 384),
+@pytest.mark.parametrize(("name", "preset", "size"), [("small.pt", "small-relu", 384),
                                                       ("nano.pt", "nano", 320)])
 def test_shipped_weights_load_and_detect(name, preset, size):
     path = WEIGHTS / name
