@@ -64,9 +64,6 @@ def load_weights(model: nn.Module, path: str | Path, preset: str | None = None) 
         InputError: the checkpoint's tensors do not fit the model (other preset or classes).
     """
     config, state = read_checkpoint(path)
-    if preset is not None and config.get("preset") not in (None, preset):
-        warnings.warn(f"{path}: weights of preset {config['preset']!r} start a {preset!r} model "
-                      "(same tensors, other activations)", stacklevel=2)
     own = model.state_dict()
     bad = [k for k, v in state.items() if k not in own or own[k].shape != v.shape]
     missing = [k for k in own if k not in state]
@@ -74,6 +71,9 @@ def load_weights(model: nn.Module, path: str | Path, preset: str | None = None) 
         raise InputError(f"{path}: weights do not fit this model ({len(bad)} mismatched, "
                          f"{len(missing)} missing, e.g. {(bad or missing)[0]}); same preset "
                          "and num_classes are needed")
+    if preset is not None and config.get("preset") not in (None, preset):
+        warnings.warn(f"{path}: weights of preset {config['preset']!r} start a {preset!r} model "
+                      "(same tensors, other activations)", stacklevel=2)
     model.load_state_dict(state)
 
 
