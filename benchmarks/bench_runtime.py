@@ -158,8 +158,8 @@ def run_input_size(args: argparse.Namespace) -> None:
             models["int8"] = quantize_int8(models["fp32"], Path(tmp) / "int8.onnx", calib)
         for (precision, path), size in ((m, s) for m in models.items() for s in args.sizes):
             t0 = time.perf_counter()
-            results = predict_coco(OnnxDetector(path, args.threads, img_size=size), gt,
-                                   args.test.parent, progress=False)
+            results = predict_coco(OnnxDetector(path, args.ap_threads or args.threads, img_size=size),
+                                   gt, args.test.parent, progress=False)
             ap = coco_ap(gt, results)
             lat = bench_onnx(path, size, args.threads, runs=args.runs, frame_size=frame)
             print(json.dumps({"precision": precision, "img_size": size, "frame": frame,
@@ -196,7 +196,9 @@ def main() -> None:
     ins.add_argument("--checkpoint", type=Path, required=True)
     ins.add_argument("--test", type=Path, required=True, help="annotations.json of the frames")
     ins.add_argument("--sizes", type=int, nargs="+", default=[384, 512, 768, 1024])
-    ins.add_argument("--threads", type=int, default=1)
+    ins.add_argument("--threads", type=int, default=1, help="threads of the timed runs")
+    ins.add_argument("--ap-threads", type=int, default=None,
+                     help="threads while detecting on the frames for AP (default --threads)")
     ins.add_argument("--runs", type=int, default=5)
     ins.add_argument("--calib", type=Path, default=None,
                      help="calibration dataset folder: also quantize and measure int8")

@@ -1,0 +1,196 @@
+"""Why craters are missed at the operating point: a validation-split diagnosis of Pd.
+
+For one checkpoint on one labelled split (use a validation split: the threshold is picked on
+it), prints one JSON line each:
+
+1. ``summary``: crater AP50 / AP, the threshold at 0.2 false alarms per image, Pd there (all
+   craters, and D >= 5 m with the near rim within 20 m, the issue's Pd set).
+2. ``localised``, per group (the Pd set, the other craters) and degradation third: how many
+   craters have a crater detection at IoU >= 0.5 at any score, the median score of the best such
+   detection, and how many keep one at the operating threshold. A crater found at a low score
+   is a ranking miss; one with no box at IoU >= 0.5 a localisation miss.
+3. ``false_alarms``: what the false alarms at the threshold overlap (a crater at IoU 0.1–0.5,
+   ignored or not; a second box on a crater already found; a rock or artifact; nothing).
+4. ``nms``, per ``--nms`` value: the same Pd after a stricter class-wise NMS over the detections
+   (a post-processing choice made on validation).
+
+With ``--transfer`` the split is a real one (``lunarnav import-real``, no crater geometry):
+only the NMS study runs, reported as the transfer report's recall@5 and AP50 per class.
+
+    python benchmarks/pd_diagnosis.py --gt data/d4/val300/annotations.json \\
+        --checkpoint lunarnav_ml/weights/small.pt --nms 0.6 0.5 0.45
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torchvision.ops import batched_nms, box_iou
+
+from lunarnav_ml.eval.coco_metrics import coco_ap
+from lunarnav_ml.eval.pd import match_craters, pick_operating_threshold, subset
+from lunarnav_ml.eval.predict import predict_coco
+from lunarnav_ml.training.api import load_detector
+
+CRATER = 1
+
+
+def in_pd_set(ann: dict[str, Any]) -> bool:
+    """The issue's Pd set: D >= 5 m with the near rim within 20 m."""
+    return ann["diameter_m"] >= 5 and ann["near_rim_range_m"] <= 20
+
+
+def xyxy(items: list[dict[str, Any]]) -> torch.Tensor:
+    """COCO ``bbox`` (x, y, w, h) of annotations or results as an (N, 4) xyxy tensor."""
+    b = torch.tensor([it["bbox"] for it in items], dtype=torch.float64).reshape(-1, 4)
+    return torch.cat([b[:, :2], b[:, :2] + b[:, 2:]], dim=1)
+
+
+def by_image(items: list[dict[str, Any]]) -> dict[int, list[dict[str, Any]]]:
+    out: dict[int, list[dict[str, Any]]] = {}
+    for it in items:
+        out.setdefault(it["image_id"], []).append(it)
+    return out
+
+
+def summary(gt: dict[str, Any], results: list[dict[str, Any]]) -> dict[str, Any]:
+    """AP, the 0.2 FA/image threshold and Pd there."""
+    ap = coco_ap(gt, results)["per_class"]["crater"]
+    thr = pick_operating_threshold(gt, results)
+    match = match_craters(gt, results, thr)
+    keep = np.array([in_pd_set(a) for a in match.gt])
+    return {"crater_AP50": round(ap["AP50"], 4), "crater_AP": round(ap["AP"], 4),
+            "threshold": round(thr, 4), "fa_per_image": round(match.fa_per_image, 3),
+            "pd_all": round(match.pd, 4), "pd_set": round(subset(match, keep).pd, 4),
+            "n_pd_set": int(keep.sum())}
+
+
+def localised(gt: dict[str, Any], results: list[dict[str, Any]], thr: float) -> list[dict]:
+    """Per crater: best score among its IoU >= 0.5 crater detections; grouped."""
+    dets = by_image([r for r in results if r["category_id"] == CRATER])
+    rows = []
+    for img_id, anns in by_image(gt["annotations"]).items():
+        anns = [a for a in anns if a["category_id"] == CRATER and not a.get("ignore")]
+        d = dets.get(img_id, [])
+        if not anns:
+            continue
+        if d:
+            ok = box_iou(xyxy(anns), xyxy(d)) >= 0.5
+            scores = torch.tensor([x["score"] for x in d], dtype=torch.float64)
+            best = torch.where(ok, scores, torch.zeros_like(scores)).max(dim=1).values.tolist()
+        else:
+            best = [0.0] * len(anns)
+        rows += [(in_pd_set(a), a.get("degradation", 0.0), s, a["bbox"][2], a["bbox"][3])
+                 for a, s in zip(anns, best)]
+    out = []
+    for name, group in (("pd_set", True), ("others", False)):
+        wh = np.array([r[3:5] for r in rows if r[0] == group])
+        out.append({"group": name, "n": len(wh), "median_box_w": round(float(np.median(wh[:, 0])), 1),
+                    "median_box_h": round(float(np.median(wh[:, 1])), 1),
+                    "median_aspect": round(float(np.median(wh[:, 0] / wh[:, 1])), 1)})
+        for lo, hi in ((0.0, 1 / 3), (1 / 3, 2 / 3), (2 / 3, 1.01)):
+            s = np.array([r[2] for r in rows if r[0] == group and lo <= r[1] < hi])
+            if not len(s):
+                continue
+            found = s[s > 0]
+            out.append({"group": name, "degradation": f"{lo:.2f}-{min(hi, 1):.2f}", "n": len(s),
+                        "any_score": round(float((s > 0).mean()), 3),
+                        "median_score_found": round(float(np.median(found)), 3) if len(found) else None,
+                        "at_threshold": round(float((s >= thr).mean()), 3)})
+    return out
+
+
+def false_alarms(gt: dict[str, Any], results: list[dict[str, Any]], thr: float) -> dict[str, int]:
+    """What each false alarm at the threshold overlaps (greedy matching as in ``match_craters``)."""
+    dets = by_image([r for r in results if r["category_id"] == CRATER and r["score"] >= thr])
+    anns_by = by_image(gt["annotations"])
+    kinds: Counter = Counter()
+    for img_id, d in dets.items():
+        d = sorted(d, key=lambda r: -r["score"])
+        anns = anns_by.get(img_id, [])
+        craters = [a for a in anns if a["category_id"] == CRATER]
+        others = [a for a in anns if a["category_id"] != CRATER]
+        iou_c = box_iou(xyxy(d), xyxy(craters)) if craters else torch.zeros(len(d), 0)
+        iou_o = box_iou(xyxy(d), xyxy(others)) if others else torch.zeros(len(d), 0)
+        used: set[int] = set()
+        for i in range(len(d)):
+            live = [k for k, a in enumerate(craters)
+                    if not a.get("ignore") and k not in used and iou_c[i, k] >= 0.5]
+            if live:
+                used.add(max(live, key=lambda k: float(iou_c[i, k])))
+                continue
+            if any(a.get("ignore") and iou_c[i, k] >= 0.5 for k, a in enumerate(craters)):
+                continue  # on an ignored crater: neither hit nor false alarm
+            k = int(iou_c[i].argmax()) if craters else -1
+            if k >= 0 and iou_c[i, k] >= 0.1:
+                a = craters[k]
+                kinds["second box on a found crater" if k in used else
+                      "ignored crater, IoU < 0.5" if a.get("ignore") else "crater, IoU < 0.5"] += 1
+            elif others and float(iou_o[i].max()) >= 0.3:
+                kinds["rock or artifact"] += 1
+            else:
+                kinds["nothing labelled"] += 1
+    return dict(kinds)
+
+
+def stricter_nms(results: list[dict[str, Any]], iou: float) -> list[dict[str, Any]]:
+    """Class-wise NMS at ``iou`` over COCO results (already NMS-ed at a looser IoU)."""
+    out = []
+    for dets in by_image(results).values():
+        keep = batched_nms(xyxy(dets), torch.tensor([r["score"] for r in dets], dtype=torch.float64),
+                           torch.tensor([r["category_id"] for r in dets]), iou)
+        out += [dets[i] for i in keep.tolist()]
+    return out
+
+
+def transfer_nms(gt: dict[str, Any], results: list[dict[str, Any]], iou: float) -> dict:
+    """recall@5 and AP50 per class of the transfer report after a stricter NMS."""
+    from lunarnav_ml.realdata.transfer import transfer_metrics
+
+    per_class = transfer_metrics(gt, stricter_nms(results, iou))["all"]["per_class"]
+    return {name: {"recall@5": round(m["recall@5"], 3), "AP50": round(m["AP50"], 3)}
+            for name, m in per_class.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--gt", type=Path, required=True, help="validation annotations.json")
+    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("--img-size", type=int, default=None)
+    parser.add_argument("--nms", type=float, nargs="*", default=[], help="stricter NMS IoUs to try")
+    parser.add_argument("--transfer", action="store_true",
+                        help="a real split: only the NMS study, as transfer metrics")
+    parser.add_argument("--cache", type=Path, default=None,
+                        help="detections JSON: read when present, else written")
+    args = parser.parse_args()
+    gt = json.loads(args.gt.read_text())
+    if args.cache is not None and args.cache.exists():
+        results = json.loads(args.cache.read_text())
+    else:
+        results = predict_coco(load_detector(args.checkpoint, img_size=args.img_size), gt,
+                               args.gt.parent, progress=False)
+        if args.cache is not None:
+            tmp = args.cache.with_suffix(".tmp")
+            tmp.write_text(json.dumps(results))
+            tmp.replace(args.cache)
+    if args.transfer:
+        for iou in args.nms:
+            print(json.dumps({"nms": iou, **transfer_nms(gt, results, iou)}))
+        return
+    head = summary(gt, results)
+    print(json.dumps({"summary": head, "checkpoint": str(args.checkpoint)}))
+    for row in localised(gt, results, head["threshold"]):
+        print(json.dumps({"localised": row}))
+    print(json.dumps({"false_alarms": false_alarms(gt, results, head["threshold"])}))
+    for iou in args.nms:
+        print(json.dumps({"nms": iou, **summary(gt, stricter_nms(results, iou))}))
+
+
+if __name__ == "__main__":
+    main()
