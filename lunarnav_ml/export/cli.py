@@ -72,6 +72,9 @@ def _add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--warmup", type=int, default=2, help="untimed calls first")
     p.add_argument("--conf", type=float, default=0.25, help="score threshold of the NMS")
     p.add_argument("--network-only", action="store_true", help="time the graph alone")
+    p.add_argument("--frame-size", type=int, default=None,
+                   help="ONNX: time a camera frame of this side letterboxed to each input side "
+                        "(e.g. 1024 px frames read at 512); default: a frame of the input side")
     p.set_defaults(func=run_bench)
 
 
@@ -83,13 +86,15 @@ def run_bench(args: argparse.Namespace) -> int:
         raise ConfigError("bench: give --onnx FILE(S) and/or --checkpoint")
     if args.runs < 1 or args.warmup < 0 or min(args.threads) < 1 or min(args.sizes) < 1:
         raise ConfigError("bench: --runs, --threads and --sizes must be positive")
+    if args.frame_size is not None and args.frame_size < 1:
+        raise ConfigError(f"bench: --frame-size must be positive, got {args.frame_size}")
     kw = {"runs": args.runs, "warmup": args.warmup, "conf_thres": args.conf,
           "network_only": args.network_only}
     for path in args.onnx:
         for size in args.sizes:
             gflop = conv_flops(path, size) / 1e9
             for threads in args.threads:
-                s = bench_onnx(path, size, threads, **kw)
+                s = bench_onnx(path, size, threads, frame_size=args.frame_size, **kw)
                 print(f"{path.name:28s} {size:5d} px {threads} thr  onnxruntime  {s.row()}  "
                       f"{gflop / (s.median_ms / 1e3):6.1f} GFLOP/s ({gflop:.1f} GFLOP)",
                       flush=True)

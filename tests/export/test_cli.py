@@ -67,6 +67,22 @@ def test_bench_eager_torch(checkpoint, capsys):
     assert "torch-eager" in capsys.readouterr().out
 
 
+def test_bench_frame_size_reaches_the_timer(onnx_path, capsys, monkeypatch):
+    import lunarnav_ml.export.bench as bench
+
+    seen = []
+    real = bench.bench_onnx
+    monkeypatch.setattr(bench, "bench_onnx",
+                        lambda *a, **kw: seen.append(kw["frame_size"]) or real(*a, **kw))
+    args = parse("bench", "--onnx", str(onnx_path), "--sizes", "64", "--runs", "1",
+                 "--warmup", "0", "--frame-size", "128")
+    assert args.func(args) == 0
+    assert seen == [128] and "median" in capsys.readouterr().out
+    args = parse("bench", "--onnx", str(onnx_path), "--frame-size", "0")
+    with pytest.raises(ConfigError, match="--frame-size"):
+        args.func(args)
+
+
 def test_bench_needs_a_model():
     args = parse("bench")
     with pytest.raises(ConfigError, match="--onnx"):
