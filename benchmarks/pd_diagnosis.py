@@ -37,6 +37,7 @@ from lunarnav_ml.eval.coco_metrics import coco_ap
 from lunarnav_ml.eval.pd import match_craters, pick_operating_threshold, subset
 from lunarnav_ml.eval.predict import predict_coco
 from lunarnav_ml.training.api import load_detector
+from lunarnav_ml.utils import atomic
 
 CRATER = 1
 
@@ -71,8 +72,9 @@ def summary(gt: dict[str, Any], results: list[dict[str, Any]]) -> dict[str, Any]
             "n_pd_set": int(keep.sum())}
 
 
-def localised(gt: dict[str, Any], results: list[dict[str, Any]], thr: float) -> list[dict]:
-    """Per crater: best score among its IoU >= 0.5 crater detections; grouped."""
+def crater_scores(gt: dict[str, Any], results: list[dict[str, Any]]) -> list[tuple]:
+    """Per non-ignored crater: (in the Pd set, degradation, best score among its IoU >= 0.5
+    crater detections or 0, box width, box height)."""
     dets = by_image([r for r in results if r["category_id"] == CRATER])
     rows = []
     for img_id, anns in by_image(gt["annotations"]).items():
@@ -88,6 +90,11 @@ def localised(gt: dict[str, Any], results: list[dict[str, Any]], thr: float) -> 
             best = [0.0] * len(anns)
         rows += [(in_pd_set(a), a.get("degradation", 0.0), s, a["bbox"][2], a["bbox"][3])
                  for a, s in zip(anns, best)]
+    return rows
+
+
+def localised(rows: list[tuple], thr: float) -> list[dict]:
+    """:func:`crater_scores` grouped: Pd set / others, by degradation third."""
     out = []
     for name, group in (("pd_set", True), ("others", False)):
         wh = np.array([r[3:5] for r in rows if r[0] == group])
@@ -104,6 +111,29 @@ def localised(gt: dict[str, Any], results: list[dict[str, Any]], thr: float) -> 
                         "median_score_found": round(float(np.median(found)), 3) if len(found) else None,
                         "at_threshold": round(float((s >= thr).mean()), 3)})
     return out
+
+
+def plot_scores(rows: list[tuple], thr: float, path: Path) -> Path:
+    """Histogram of the best IoU >= 0.5 score per localised crater, Pd set and others by
+    degradation, with the operating threshold."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), sharex=True)
+    bins = np.linspace(0, 1, 41)
+    for ax, (name, group) in zip(axes, (("Pd set: D >= 5 m, near rim <= 20 m", True),
+                                        ("other craters", False))):
+        for label, lo, hi in (("fresh", 0, 1 / 3), ("half-degraded", 1 / 3, 2 / 3),
+                              ("degraded", 2 / 3, 1.01)):
+            s = [r[2] for r in rows if r[0] == group and lo <= r[1] < hi and r[2] > 0]
+            ax.hist(s, bins=bins, histtype="step", lw=1.5, label=f"{label} (n = {len(s)})")
+        ax.axvline(thr, color="r", ls="--", lw=1, label=f"threshold {thr:.3f} (0.2 FA/img)")
+        ax.set(xlabel="score of the best box at IoU >= 0.5", ylabel="craters", title=name)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    return atomic.write_figure(path, fig)
 
 
 def false_alarms(gt: dict[str, Any], results: list[dict[str, Any]], thr: float) -> dict[str, int]:
@@ -164,6 +194,8 @@ def main() -> None:
     parser.add_argument("--checkpoint", type=Path, required=True)
     parser.add_argument("--img-size", type=int, default=None)
     parser.add_argument("--nms", type=float, nargs="*", default=[], help="stricter NMS IoUs to try")
+    parser.add_argument("--plot", type=Path, default=None,
+                        help="PNG: score histograms of the localised craters")
     parser.add_argument("--transfer", action="store_true",
                         help="a real split: only the NMS study, as transfer metrics")
     parser.add_argument("--cache", type=Path, default=None,
@@ -176,17 +208,18 @@ def main() -> None:
         results = predict_coco(load_detector(args.checkpoint, img_size=args.img_size), gt,
                                args.gt.parent, progress=False)
         if args.cache is not None:
-            tmp = args.cache.with_suffix(".tmp")
-            tmp.write_text(json.dumps(results))
-            tmp.replace(args.cache)
+            atomic.write_json(args.cache, results, indent=None)
     if args.transfer:
         for iou in args.nms:
             print(json.dumps({"nms": iou, **transfer_nms(gt, results, iou)}))
         return
     head = summary(gt, results)
     print(json.dumps({"summary": head, "checkpoint": str(args.checkpoint)}))
-    for row in localised(gt, results, head["threshold"]):
+    rows = crater_scores(gt, results)
+    for row in localised(rows, head["threshold"]):
         print(json.dumps({"localised": row}))
+    if args.plot is not None:
+        print(json.dumps({"plot": str(plot_scores(rows, head["threshold"], args.plot))}))
     print(json.dumps({"false_alarms": false_alarms(gt, results, head["threshold"])}))
     for iou in args.nms:
         print(json.dumps({"nms": iou, **summary(gt, stricter_nms(results, iou))}))
