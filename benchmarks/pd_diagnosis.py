@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,8 @@ import numpy as np
 import torch
 from torchvision.ops import batched_nms, box_iou
 
+from lunarnav_ml.errors import LunarNavError
+from lunarnav_ml.eval.cli import load_json
 from lunarnav_ml.eval.coco_metrics import coco_ap
 from lunarnav_ml.eval.pd import match_craters, pick_operating_threshold, subset
 from lunarnav_ml.eval.predict import predict_coco
@@ -188,7 +191,7 @@ def transfer_nms(gt: dict[str, Any], results: list[dict[str, Any]], iou: float) 
             for name, m in per_class.items()}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--gt", type=Path, required=True, help="validation annotations.json")
     parser.add_argument("--checkpoint", type=Path, required=True)
@@ -200,19 +203,23 @@ def main() -> None:
                         help="a real split: only the NMS study, as transfer metrics")
     parser.add_argument("--cache", type=Path, default=None,
                         help="detections JSON: read when present, else written")
-    args = parser.parse_args()
-    gt = json.loads(args.gt.read_text())
-    if args.cache is not None and args.cache.exists():
-        results = json.loads(args.cache.read_text())
-    else:
-        results = predict_coco(load_detector(args.checkpoint, img_size=args.img_size), gt,
-                               args.gt.parent, progress=False)
-        if args.cache is not None:
-            atomic.write_json(args.cache, results, indent=None)
+    args = parser.parse_args(argv)
+    try:
+        gt = load_json(args.gt, "ground truth")
+        if args.cache is not None and args.cache.exists():
+            results = load_json(args.cache, "cached detections")
+        else:
+            results = predict_coco(load_detector(args.checkpoint, img_size=args.img_size), gt,
+                                   args.gt.parent, progress=False)
+            if args.cache is not None:
+                atomic.write_json(args.cache, results, indent=None)
+    except LunarNavError as err:
+        print(f"pd_diagnosis: error: {err}", file=sys.stderr)
+        return 2
     if args.transfer:
         for iou in args.nms:
             print(json.dumps({"nms": iou, **transfer_nms(gt, results, iou)}))
-        return
+        return 0
     head = summary(gt, results)
     print(json.dumps({"summary": head, "checkpoint": str(args.checkpoint)}))
     rows = crater_scores(gt, results)
@@ -223,7 +230,7 @@ def main() -> None:
     print(json.dumps({"false_alarms": false_alarms(gt, results, head["threshold"])}))
     for iou in args.nms:
         print(json.dumps({"nms": iou, **summary(gt, stricter_nms(results, iou))}))
-
+    return 0
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -68,7 +68,7 @@ def test_bench_eager_torch(checkpoint, capsys):
 
 
 def test_bench_frame_size_reaches_the_timer(onnx_path, capsys, monkeypatch):
-    import lunarnav_ml.export.bench as bench
+    from lunarnav_ml.export import bench
 
     seen = []
     real = bench.bench_onnx
