@@ -32,28 +32,30 @@ from typing import Any
 
 import numpy as np
 import torch
-from torchvision.ops import batched_nms, box_iou
+from torchvision.ops import batched_nms, box_convert, box_iou
 
 from lunarnav_ml.errors import LunarNavError
 from lunarnav_ml.eval.cli import load_json
 from lunarnav_ml.eval.coco_metrics import coco_ap
-from lunarnav_ml.eval.pd import match_craters, pick_operating_threshold, subset
+from lunarnav_ml.eval.pd import (
+    in_key_set,
+    is_ignored,
+    match_craters,
+    pick_operating_threshold,
+    subset,
+)
 from lunarnav_ml.eval.predict import predict_coco
 from lunarnav_ml.training.api import load_detector
 from lunarnav_ml.utils import atomic
 
 CRATER = 1
-
-
-def in_pd_set(ann: dict[str, Any]) -> bool:
-    """The issue's Pd set: D >= 5 m with the near rim within 20 m."""
-    return ann["diameter_m"] >= 5 and ann["near_rim_range_m"] <= 20
+THIRDS = (("fresh", 0.0, 1 / 3), ("half-degraded", 1 / 3, 2 / 3), ("degraded", 2 / 3, 1.01))
 
 
 def xyxy(items: list[dict[str, Any]]) -> torch.Tensor:
     """COCO ``bbox`` (x, y, w, h) of annotations or results as an (N, 4) xyxy tensor."""
     b = torch.tensor([it["bbox"] for it in items], dtype=torch.float64).reshape(-1, 4)
-    return torch.cat([b[:, :2], b[:, :2] + b[:, 2:]], dim=1)
+    return box_convert(b, "xywh", "xyxy")
 
 
 def by_image(items: list[dict[str, Any]]) -> dict[int, list[dict[str, Any]]]:
@@ -68,9 +70,9 @@ def summary(gt: dict[str, Any], results: list[dict[str, Any]]) -> dict[str, Any]
     ap = coco_ap(gt, results)["per_class"]["crater"]
     thr = pick_operating_threshold(gt, results)
     match = match_craters(gt, results, thr)
-    keep = np.array([in_pd_set(a) for a in match.gt])
+    keep = np.array([in_key_set(a) for a in match.gt], dtype=bool)
     return {"crater_AP50": round(ap["AP50"], 4), "crater_AP": round(ap["AP"], 4),
-            "threshold": round(thr, 4), "fa_per_image": round(match.fa_per_image, 3),
+            "threshold": thr, "fa_per_image": round(match.fa_per_image, 3),
             "pd_all": round(match.pd, 4), "pd_set": round(subset(match, keep).pd, 4),
             "n_pd_set": int(keep.sum())}
 
@@ -81,7 +83,7 @@ def crater_scores(gt: dict[str, Any], results: list[dict[str, Any]]) -> list[tup
     dets = by_image([r for r in results if r["category_id"] == CRATER])
     rows = []
     for img_id, anns in by_image(gt["annotations"]).items():
-        anns = [a for a in anns if a["category_id"] == CRATER and not a.get("ignore")]
+        anns = [a for a in anns if a["category_id"] == CRATER and not is_ignored(a)]
         d = dets.get(img_id, [])
         if not anns:
             continue
@@ -91,7 +93,7 @@ def crater_scores(gt: dict[str, Any], results: list[dict[str, Any]]) -> list[tup
             best = torch.where(ok, scores, torch.zeros_like(scores)).max(dim=1).values.tolist()
         else:
             best = [0.0] * len(anns)
-        rows += [(in_pd_set(a), a.get("degradation", 0.0), s, a["bbox"][2], a["bbox"][3])
+        rows += [(in_key_set(a), a.get("degradation", 0.0), s, a["bbox"][2], a["bbox"][3])
                  for a, s in zip(anns, best)]
     return rows
 
@@ -104,12 +106,12 @@ def localised(rows: list[tuple], thr: float) -> list[dict]:
         out.append({"group": name, "n": len(wh), "median_box_w": round(float(np.median(wh[:, 0])), 1),
                     "median_box_h": round(float(np.median(wh[:, 1])), 1),
                     "median_aspect": round(float(np.median(wh[:, 0] / wh[:, 1])), 1)})
-        for lo, hi in ((0.0, 1 / 3), (1 / 3, 2 / 3), (2 / 3, 1.01)):
+        for label, lo, hi in THIRDS:
             s = np.array([r[2] for r in rows if r[0] == group and lo <= r[1] < hi])
             if not len(s):
                 continue
             found = s[s > 0]
-            out.append({"group": name, "degradation": f"{lo:.2f}-{min(hi, 1):.2f}", "n": len(s),
+            out.append({"group": name, "degradation": label, "n": len(s),
                         "any_score": round(float((s > 0).mean()), 3),
                         "median_score_found": round(float(np.median(found)), 3) if len(found) else None,
                         "at_threshold": round(float((s >= thr).mean()), 3)})
@@ -128,8 +130,7 @@ def plot_scores(rows: list[tuple], thr: float, path: Path) -> Path:
     bins = np.linspace(0, 1, 41)
     for ax, (name, group) in zip(axes, (("Pd set: D >= 5 m, near rim <= 20 m", True),
                                         ("other craters", False))):
-        for label, lo, hi in (("fresh", 0, 1 / 3), ("half-degraded", 1 / 3, 2 / 3),
-                              ("degraded", 2 / 3, 1.01)):
+        for label, lo, hi in THIRDS:
             s = [r[2] for r in rows if r[0] == group and lo <= r[1] < hi and r[2] > 0]
             ax.hist(s, bins=bins, histtype="step", lw=1.5, label=f"{label} (n = {len(s)})")
         ax.axvline(thr, color="r", ls="--", lw=1, label=f"threshold {thr:.3f} (0.2 FA/img)")
@@ -140,35 +141,26 @@ def plot_scores(rows: list[tuple], thr: float, path: Path) -> Path:
 
 
 def false_alarms(gt: dict[str, Any], results: list[dict[str, Any]], thr: float) -> dict[str, int]:
-    """What each false alarm at the threshold overlaps (greedy matching as in ``match_craters``)."""
-    dets = by_image([r for r in results if r["category_id"] == CRATER and r["score"] >= thr])
+    """What each false alarm of :func:`match_craters` at the threshold overlaps most."""
+    match = match_craters(gt, results, thr)
+    found = {id(a) for a, h in zip(match.gt, match.hit) if h}
     anns_by = by_image(gt["annotations"])
     kinds: Counter = Counter()
-    for img_id, d in dets.items():
-        d = sorted(d, key=lambda r: -r["score"])
-        anns = anns_by.get(img_id, [])
+    for det in match.false_alarm_dets:
+        anns = anns_by.get(det["image_id"], [])
         craters = [a for a in anns if a["category_id"] == CRATER]
         others = [a for a in anns if a["category_id"] != CRATER]
-        iou_c = box_iou(xyxy(d), xyxy(craters)) if craters else torch.zeros(len(d), 0)
-        iou_o = box_iou(xyxy(d), xyxy(others)) if others else torch.zeros(len(d), 0)
-        used: set[int] = set()
-        for i in range(len(d)):
-            live = [k for k, a in enumerate(craters)
-                    if not a.get("ignore") and k not in used and iou_c[i, k] >= 0.5]
-            if live:
-                used.add(max(live, key=lambda k: float(iou_c[i, k])))
-                continue
-            if any(a.get("ignore") and iou_c[i, k] >= 0.5 for k, a in enumerate(craters)):
-                continue  # on an ignored crater: neither hit nor false alarm
-            k = int(iou_c[i].argmax()) if craters else -1
-            if k >= 0 and iou_c[i, k] >= 0.1:
-                a = craters[k]
-                kinds["second box on a found crater" if k in used else
-                      "ignored crater, IoU < 0.5" if a.get("ignore") else "crater, IoU < 0.5"] += 1
-            elif others and float(iou_o[i].max()) >= 0.3:
-                kinds["rock or artifact"] += 1
-            else:
-                kinds["nothing labelled"] += 1
+        iou_c = box_iou(xyxy([det]), xyxy(craters))[0]
+        iou_o = box_iou(xyxy([det]), xyxy(others))[0]
+        k = int(iou_c.argmax()) if craters else -1
+        if k >= 0 and iou_c[k] >= 0.1:
+            a = craters[k]
+            kinds["second box on a found crater" if id(a) in found else
+                  "ignored crater, IoU < 0.5" if is_ignored(a) else "crater, IoU < 0.5"] += 1
+        elif others and float(iou_o.max()) >= 0.3:
+            kinds["rock or artifact"] += 1
+        else:
+            kinds["nothing labelled"] += 1
     return dict(kinds)
 
 
@@ -231,6 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     for iou in args.nms:
         print(json.dumps({"nms": iou, **summary(gt, stricter_nms(results, iou))}))
     return 0
+
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -20,6 +20,7 @@ import numpy as np
 from pycocotools import mask as mask_utils
 
 CRATER_ID = 1
+KEY_MIN_DIAMETER_M, KEY_MAX_RANGE_M = 5.0, 20.0  # the issue's Pd set (see in_key_set)
 
 
 @dataclass
@@ -29,14 +30,19 @@ class MatchResult:
     Attributes:
         gt: the non-ignored ground-truth crater annotations, in a fixed order.
         hit: bool per entry of ``gt``: detected at the threshold.
-        false_alarms: number of false-alarm predictions over all images.
+        false_alarm_dets: the false-alarm predictions over all images.
         n_images: number of images evaluated.
     """
 
     gt: list[dict[str, Any]]
     hit: np.ndarray
-    false_alarms: int
+    false_alarm_dets: list[dict[str, Any]]
     n_images: int
+
+    @property
+    def false_alarms(self) -> int:
+        """Number of false-alarm predictions over all images."""
+        return len(self.false_alarm_dets)
 
     @property
     def pd(self) -> float:
@@ -73,40 +79,47 @@ def match_craters(
     for det in results:
         if det["category_id"] == category_id and det["score"] >= threshold:
             dt_by_img[det["image_id"]].append(det)
-    gts, hits, false_alarms = [], [], 0
+    gts, hits, false_alarms = [], [], []
     for img in gt["images"]:
         anns = gt_by_img.get(img["id"], [])
         img_hits, img_fa = _match_image(anns, dt_by_img.get(img["id"], []), iou_thres)
-        gts.extend(a for a in anns if not _ignored(a))
+        gts.extend(a for a in anns if not is_ignored(a))
         hits.extend(img_hits)
-        false_alarms += img_fa
+        false_alarms.extend(img_fa)
     return MatchResult(gts, np.asarray(hits, dtype=bool), false_alarms, len(gt["images"]))
 
 
-def _ignored(ann: dict[str, Any]) -> bool:
+def is_ignored(ann: dict[str, Any]) -> bool:
+    """An ignore region: neither a hit nor a miss, and a box on it is no false alarm."""
     return bool(ann.get("ignore", False)) or bool(ann.get("iscrowd", 0))
+
+
+def in_key_set(ann: dict[str, Any]) -> bool:
+    """The issue's headline Pd set: craters D >= 5 m whose near rim is within 20 m."""
+    return (float(ann.get("diameter_m", np.nan)) >= KEY_MIN_DIAMETER_M
+            and float(ann.get("near_rim_range_m", np.nan)) <= KEY_MAX_RANGE_M)
 
 
 def _match_image(
     anns: list[dict], dets: list[dict], iou_thres: float
-) -> tuple[list[bool], int]:
-    """Greedy matching in one image; returns hit flags for non-ignored GT and the FA count."""
-    real = [a for a in anns if not _ignored(a)]
-    ignored = [a for a in anns if _ignored(a)]
+) -> tuple[list[bool], list[dict]]:
+    """Greedy matching in one image; returns hit flags for non-ignored GT and the false alarms."""
+    real = [a for a in anns if not is_ignored(a)]
+    ignored = [a for a in anns if is_ignored(a)]
     dets = sorted(dets, key=lambda d: -d["score"])
     hit = [False] * len(real)
     if not dets:
-        return hit, 0
+        return hit, []
     boxes = np.asarray([d["bbox"] for d in dets], dtype=float)
     iou_real = _iou(boxes, real)
     iou_ign = _iou(boxes, ignored)
-    false_alarms = 0
+    false_alarms = []
     for i in range(len(dets)):
         candidates = [j for j in range(len(real)) if not hit[j] and iou_real[i, j] >= iou_thres]
         if candidates:
             hit[max(candidates, key=lambda j: iou_real[i, j])] = True
         elif not (iou_ign.shape[1] and iou_ign[i].max() >= iou_thres):
-            false_alarms += 1
+            false_alarms.append(dets[i])
     return hit, false_alarms
 
 
@@ -182,4 +195,4 @@ def subset(match: MatchResult, keep: np.ndarray) -> MatchResult:
     """The same match restricted to the ground-truth craters selected by ``keep``."""
     keep = np.asarray(keep, dtype=bool)
     return MatchResult([g for g, k in zip(match.gt, keep) if k], match.hit[keep],
-                       match.false_alarms, match.n_images)
+                       match.false_alarm_dets, match.n_images)

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from lunarnav_ml.eval.coco_metrics import coco_ap
-from lunarnav_ml.eval.pd import MatchResult, match_craters, pd_by, subset
+from lunarnav_ml.eval.pd import MatchResult, in_key_set, match_craters, pd_by, subset
 from lunarnav_ml.eval.plots import plot_pd_vs_range, plot_pd_vs_sun
 from lunarnav_ml.utils import atomic
 
@@ -47,7 +47,7 @@ def detection_metrics(
 def _geometric_tables(gt: dict[str, Any], match: MatchResult) -> dict[str, Any]:
     diam = np.asarray([a.get("diameter_m", np.nan) for a in match.gt], dtype=float)
     rng = np.asarray([a.get("near_rim_range_m", np.nan) for a in match.gt], dtype=float)
-    key_set = subset(match, (diam >= 5.0) & (rng <= 20.0))
+    key_set = subset(match, np.array([in_key_set(a) for a in match.gt], dtype=bool))
     tables: dict[str, Any] = {
         "crater_pd_D5_within20m": atomic.finite_or_none(key_set.pd),
         "n_craters_D5_within20m": int(key_set.hit.size),
