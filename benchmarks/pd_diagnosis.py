@@ -38,6 +38,7 @@ from lunarnav_ml.errors import LunarNavError
 from lunarnav_ml.eval.cli import load_json
 from lunarnav_ml.eval.coco_metrics import coco_ap
 from lunarnav_ml.eval.pd import (
+    MatchResult,
     in_key_set,
     is_ignored,
     match_craters,
@@ -65,8 +66,8 @@ def by_image(items: list[dict[str, Any]]) -> dict[int, list[dict[str, Any]]]:
     return out
 
 
-def summary(gt: dict[str, Any], results: list[dict[str, Any]]) -> dict[str, Any]:
-    """AP, the 0.2 FA/image threshold and Pd there."""
+def summary(gt: dict[str, Any], results: list[dict[str, Any]]) -> tuple[dict[str, Any], MatchResult]:
+    """AP, the 0.2 FA/image threshold and Pd there; and the match at that threshold."""
     ap = coco_ap(gt, results)["per_class"]["crater"]
     thr = pick_operating_threshold(gt, results)
     match = match_craters(gt, results, thr)
@@ -74,7 +75,7 @@ def summary(gt: dict[str, Any], results: list[dict[str, Any]]) -> dict[str, Any]
     return {"crater_AP50": round(ap["AP50"], 4), "crater_AP": round(ap["AP"], 4),
             "threshold": thr, "fa_per_image": round(match.fa_per_image, 3),
             "pd_all": round(match.pd, 4), "pd_set": round(subset(match, keep).pd, 4),
-            "n_pd_set": int(keep.sum())}
+            "n_pd_set": int(keep.sum())}, match
 
 
 def crater_scores(gt: dict[str, Any], results: list[dict[str, Any]]) -> list[tuple]:
@@ -140,9 +141,8 @@ def plot_scores(rows: list[tuple], thr: float, path: Path) -> Path:
     return atomic.write_figure(path, fig)
 
 
-def false_alarms(gt: dict[str, Any], results: list[dict[str, Any]], thr: float) -> dict[str, int]:
-    """What each false alarm of :func:`match_craters` at the threshold overlaps most."""
-    match = match_craters(gt, results, thr)
+def false_alarms(gt: dict[str, Any], match: MatchResult) -> dict[str, int]:
+    """What each false alarm of a :func:`match_craters` result overlaps most."""
     found = {id(a) for a, h in zip(match.gt, match.hit) if h}
     anns_by = by_image(gt["annotations"])
     kinds: Counter = Counter()
@@ -212,16 +212,16 @@ def main(argv: list[str] | None = None) -> int:
         for iou in args.nms:
             print(json.dumps({"nms": iou, **transfer_nms(gt, results, iou)}))
         return 0
-    head = summary(gt, results)
+    head, match = summary(gt, results)
     print(json.dumps({"summary": head, "checkpoint": str(args.checkpoint)}))
     rows = crater_scores(gt, results)
     for row in localised(rows, head["threshold"]):
         print(json.dumps({"localised": row}))
     if args.plot is not None:
         print(json.dumps({"plot": str(plot_scores(rows, head["threshold"], args.plot))}))
-    print(json.dumps({"false_alarms": false_alarms(gt, results, head["threshold"])}))
+    print(json.dumps({"false_alarms": false_alarms(gt, match)}))
     for iou in args.nms:
-        print(json.dumps({"nms": iou, **summary(gt, stricter_nms(results, iou))}))
+        print(json.dumps({"nms": iou, **summary(gt, stricter_nms(results, iou))[0]}))
     return 0
 
 
