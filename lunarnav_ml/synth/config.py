@@ -1,7 +1,7 @@
 """Synthetic-scene configuration: nested dataclasses with validation.
 
 A field written as ``(lo, hi)`` is a domain-randomization range: every scene draws a value
-uniformly from it (write ``[v, v]`` in YAML to fix it). Units are in the field names.
+uniformly from it (write ``[v, v]``, or just ``v``, in YAML to fix it). Units are in the field names.
 Unknown keys and impossible values raise :class:`lunarnav_ml.errors.ConfigError` naming the
 dotted key (and the file, for :meth:`SynthConfig.from_yaml`).
 """
@@ -88,7 +88,8 @@ class ArtifactConfig:
 class CameraConfig:
     """Stereo camera rig (paper table: 90 deg FOV, 1.5 m height, 0.30 m baseline)."""
 
-    fov_deg: float = _f(90.0, 10.0, 150.0, "horizontal = vertical field of view, deg")
+    fov_deg: Range = _f((90.0, 90.0), 10.0, 150.0,
+                        "horizontal = vertical field of view, deg (a range: drawn per scene)")
     height_m: Range = _f((1.3, 1.7), 0.1, 20.0, "camera height above the ground, m")
     pitch_deg: Range = _f((15.0, 25.0), -60.0, 89.0, "depression below horizontal, deg")
     roll_deg: Range = _f((-3.0, 3.0), -45.0, 45.0, "roll about the optical axis, deg")
@@ -243,11 +244,28 @@ def _section_from_dict(cls: type, data: Any, name: str) -> Any:
     unknown = sorted(set(data) - set(names))
     if unknown:
         raise ConfigError(f"unknown key '{name}.{unknown[0]}' (known: {', '.join(names)})")
-    kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+    ranged = {f.name for f in dataclasses.fields(cls) if _is_range(f)}
+    kwargs = {k: _as_range(v) if k in ranged else tuple(v) if isinstance(v, list) else v
+              for k, v in data.items()}
     section = cls(**kwargs)
     for f in dataclasses.fields(cls):
         _check_value(f"{name}.{f.name}", getattr(section, f.name), f)
     return section
+
+
+def _is_range(f: dataclasses.Field) -> bool:
+    """A numeric [lo, hi] field (a tuple default of numbers)."""
+    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+    return isinstance(default, tuple) and bool(default) and not isinstance(default[0], str)
+
+
+def _as_range(value: Any) -> Any:
+    """A YAML value for a range field: a list becomes a tuple, a lone number a fixed range."""
+    if isinstance(value, list):
+        return tuple(value)
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return (value, value)
+    return value
 
 
 def _check_value(key: str, value: Any, f: dataclasses.Field) -> None:

@@ -57,7 +57,7 @@ def make_scene_rig(spec: SceneSpec, scene: Scene, cfg: SynthConfig, size: int) -
     """Stereo rig standing on the bare ground at the spec's camera position."""
     gz = float(scene.ter.height_at(spec.cam_x, spec.cam_y, bare=True))
     return make_rig(np.array([spec.cam_x, spec.cam_y, gz]), width=size, height=size,
-                    fov_deg=cfg.camera.fov_deg, height_m=spec.height_m, yaw_deg=spec.yaw_deg,
+                    fov_deg=spec.fov_deg, height_m=spec.height_m, yaw_deg=spec.yaw_deg,
                     pitch_deg=spec.pitch_deg, roll_deg=spec.roll_deg,
                     baseline_m=cfg.camera.baseline_m)
 

@@ -41,3 +41,10 @@ def test_yaml_error_names_the_file(tmp_path):
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
 def test_every_shipped_config_loads(path):
     SynthConfig.from_yaml(path)
+
+
+def test_a_number_fixes_a_range_field():
+    cfg = SynthConfig.from_dict({"camera": {"fov_deg": 60, "pitch_deg": 20.0}})
+    assert cfg.camera.fov_deg == (60, 60) and cfg.camera.pitch_deg == (20.0, 20.0)
+    with pytest.raises(ConfigError, match=r"camera\.fov_deg"):
+        SynthConfig.from_dict({"camera": {"fov_deg": [30, 170]}})

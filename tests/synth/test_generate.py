@@ -81,3 +81,32 @@ def test_worker_processes_give_the_same_bytes(tmp_path, small_cfg):
     one = generate_dataset(tmp_path / "one", workers=1, **kw)
     two = generate_dataset(tmp_path / "two", workers=2, **kw)
     assert _digest(one.parent) == _digest(two.parent)
+
+
+def test_field_of_view_is_drawn_per_scene_without_moving_the_other_draws():
+    import dataclasses
+    import math
+
+    import numpy as np
+
+    from lunarnav_ml.synth import SynthConfig
+    from lunarnav_ml.synth.generate import item_seed
+    from lunarnav_ml.synth.pipeline import TerrainCache, make_scene_rig
+    from lunarnav_ml.synth.scene import sample_scene
+
+    fixed = SynthConfig()
+    varied = SynthConfig.from_dict({"camera": {"fov_deg": [18.0, 90.0]}})
+    fovs = []
+    for i in range(6):
+        a, b = sample_scene(fixed, item_seed(4, i)), sample_scene(varied, item_seed(4, i))
+        assert a.fov_deg == 90.0  # the paper's rig, as before FOV could vary
+        assert dataclasses.replace(b, fov_deg=90.0) == a  # every other draw is the same
+        assert b == sample_scene(varied, item_seed(4, i))  # same seed, same scene
+        fovs.append(b.fov_deg)
+    assert all(18.0 <= f <= 90.0 for f in fovs) and np.ptp(fovs) > 10.0
+    small = SynthConfig.from_dict({"terrain": {"extent_m": 40.0, "resolution_m": 0.1},
+                                   "craters": {"max_diameter_m": 12.0}})
+    spec = dataclasses.replace(sample_scene(small, item_seed(4, 0)), fov_deg=30.0)
+    rig = make_scene_rig(spec, TerrainCache().get(spec.terrain, small), small, 64)
+    assert math.isclose(rig.left.fx, 32.0 / math.tan(math.radians(15.0)))
+    assert rig.camera_dict()["fov_deg"] == 30.0
