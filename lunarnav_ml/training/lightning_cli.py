@@ -10,12 +10,14 @@ Examples::
 
 from __future__ import annotations
 
+import sys
 import warnings
 from collections.abc import Sequence
 
 from lightning.pytorch.cli import LightningCLI
 
 from lunarnav_ml.data.datamodule import DetectionDataModule
+from lunarnav_ml.errors import LunarNavError
 from lunarnav_ml.training.module import DetectorModule
 
 
@@ -36,3 +38,13 @@ def run_cli(args: Sequence[str] | None = None, run: bool = True, prog: str | Non
                        else None, run=run, seed_everything_default=0,
                        save_config_kwargs={"overwrite": True},
                        parser_kwargs={"prog": prog} if prog else None)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """``train.py``: :func:`run_cli` with bad input reported in one line (exit status 2)."""
+    try:
+        run_cli(args)
+    except (LunarNavError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as err:
+        print(f"train.py: error: {err}", file=sys.stderr)
+        return 2
+    return 0

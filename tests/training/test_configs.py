@@ -51,3 +51,23 @@ def test_cli_bf16_mixed_on_cpu(tiny_coco, tmp_path, monkeypatch):
     assert cli.trainer.precision == "bf16-mixed"
     loss = cli.trainer.callback_metrics["train/loss"]
     assert torch.isfinite(loss)
+
+
+def test_train_py_reports_bad_input_in_one_line(tiny_coco, tmp_path, monkeypatch, capsys):
+    import json
+
+    from lunarnav_ml.training.lightning_cli import main
+
+    monkeypatch.chdir(tmp_path)
+    coco = json.loads(Path(tiny_coco["train"]).read_text())
+    coco["annotations"][0]["bbox"][2] = 0.0
+    bad = Path(tiny_coco["train"]).with_name("bad.json")
+    bad.write_text(json.dumps(coco))
+    config = Path(__file__).parents[2] / "configs" / "nano_cpu.yaml"
+    code = main(["fit", "--config", str(config), "--data.train", str(bad), "--data.val",
+                 str(tiny_coco["val"]), "--data.img_size", "64", "--trainer.fast_dev_run", "1",
+                 "--trainer.enable_progress_bar", "false"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err[-1].startswith("train.py: error: ") and "bad.json" in err[-1] and "bbox" in err[-1]
+    assert not any("Traceback" in line for line in err)
