@@ -131,8 +131,8 @@ def _crater_ann(c: Crater, ctr: np.ndarray, z: np.ndarray, uv: np.ndarray, zc: n
     box = _box(uv[front] + 0.5)
     clip = (max(box[0], 0.0), max(box[1], 0.0), min(box[2], w), min(box[3], h))
     cw, ch = clip[2] - clip[0], clip[3] - clip[1]
-    if cw <= 0 or ch <= 0 or ch < rules.min_emit_height_px:
-        return None
+    if round(cw, 3) <= 0 or round(ch, 3) <= 0 or ch < rules.min_emit_height_px:
+        return None  # no area in the image at the labels' 1e-3 px precision
     full_area = (box[2] - box[0]) * (box[3] - box[1])
     near = max(0.0, math.hypot(ctr[0] - cam.position[0], ctr[1] - cam.position[1]) - c.radius)
     vis = _visible_fraction(uv[front], zc[front], depth)

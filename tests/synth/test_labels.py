@@ -69,3 +69,21 @@ def test_rock_boxes_come_from_visible_pixels(small_cfg):
         ys, xs = np.nonzero(mask)
         assert (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1) == (x, y, x + w, y + h)
         assert a["ignore"] == (h < 6)
+
+
+def test_a_rim_grazing_the_image_edge_writes_no_zero_width_box():
+    from types import SimpleNamespace
+
+    from lunarnav_ml.synth.config import LabelConfig
+    from lunarnav_ml.synth.labels import _crater_ann
+
+    cam = SimpleNamespace(width=64, height=64, position=np.zeros(3), to_cam=lambda p: p)
+    crater = SimpleNamespace(radius=2.0, diameter=4.0, depth_m=0.5, degradation=0.1)
+    a = np.linspace(0, 2 * np.pi, 360)
+    zc, z, depth = np.ones(a.size), np.zeros(a.size), np.full((64, 64), 100.0)
+    for right_edge, written in ((0.0002, False), (0.4, True)):  # box right edge, px
+        uv = np.stack([-20.5 + right_edge + 20 * (np.cos(a) - 1) + 20, 30 + 3 * np.sin(a)], 1)
+        ann = _crater_ann(crater, np.zeros(2), z, uv, zc, cam, depth, LabelConfig())
+        assert (ann is not None) == written
+        if ann is not None:
+            assert ann["bbox"][2] > 0 and ann["ignore"] and "clipped" in ann["ignore_reasons"]
