@@ -27,6 +27,7 @@ from bench_domain_gap import adaptation_rows, format_row
 
 from lunarnav_ml.errors import LunarNavError
 from lunarnav_ml.training.api import load_detector
+from lunarnav_ml.training.checkpoint import read_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -69,7 +70,8 @@ def train(arm_dir: Path, ann: Path, args: argparse.Namespace) -> Path:
     run([str(BIN / "python"), "train.py", "fit", "--config", "configs/small_cpu.yaml",
          "--seed_everything", str(args.seed),
          "--data.train", str(ann), "--data.val", str(args.val_synth),
-         "--model.init_from", str(args.init), "--model.lr", str(args.lr),
+         "--model.init_from", str(args.init), "--model.preset", args.preset,
+         "--model.lr", str(args.lr),
          "--model.warmup_steps", "50", "--trainer.max_steps", str(args.steps),
          "--trainer.max_time", "null", "--trainer.limit_val_batches", "0",
          "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", str(run_dir),
@@ -98,6 +100,11 @@ def main(argv: list[str] | None = None) -> int:
         gt = json.loads(args.gt.read_text())
     except (OSError, json.JSONDecodeError) as err:
         print(f"bench_domain_randomization: error: {args.gt}: {err}", file=sys.stderr)
+        return 2
+    try:  # train each arm as the network the start weights belong to (small.pt: small-relu)
+        args.preset = read_checkpoint(args.init)[0]["preset"]
+    except (LunarNavError, KeyError) as err:
+        print(f"bench_domain_randomization: error: {args.init}: no preset ({err})", file=sys.stderr)
         return 2
     chosen = arms()
     if args.arms:
