@@ -17,6 +17,11 @@ best on, say, 1024 px frames, with its latency; choose on a split other than the
     .venv/bin/python benchmarks/bench_runtime.py input-size --checkpoint small.pt \
         --test <dev set>/annotations.json --sizes 384 512 768 1024 [--calib <val split>]
 
+The ceiling to read achieved GFLOP/s against: a large fp32 matrix product (GEMM) per thread
+count, through onnxruntime and PyTorch:
+
+    .venv/bin/python benchmarks/bench_runtime.py peak --threads 1 2
+
 Latency is end to end per image (letterbox + network + decoding + NMS at score 0.25), batch 1,
 median and p90 over ``--runs`` calls after warm-up. GFLOP/s = conv FLOPs (2 per MAC) / median.
 """
@@ -171,6 +176,41 @@ def run_input_size(args: argparse.Namespace) -> None:
                               "seconds": round(time.perf_counter() - t0, 1)}), flush=True)
 
 
+def run_peak(args: argparse.Namespace) -> None:
+    """GFLOP/s of an ``n`` x ``n`` fp32 GEMM (2 n^3 FLOPs), onnxruntime MatMul and torch.mm."""
+    import numpy as np
+    import onnxruntime as ort
+    import torch
+    from onnx import TensorProto, helper
+
+    n = args.n
+    rng = np.random.default_rng(0)
+    a, b = (rng.random((n, n), dtype=np.float32) for _ in range(2))
+    io = [helper.make_tensor_value_info(k, TensorProto.FLOAT, [n, n]) for k in "ABC"]
+    graph = helper.make_graph([helper.make_node("MatMul", ["A", "B"], ["C"])], "gemm", io[:2],
+                              io[2:])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    ta, tb = torch.from_numpy(a), torch.from_numpy(b)
+    for threads in args.threads:
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads, opts.inter_op_num_threads = threads, 1
+        sess = ort.InferenceSession(model.SerializeToString(), opts,
+                                    providers=["CPUExecutionProvider"])
+        torch.set_num_threads(threads)
+        for runtime, call in (("onnxruntime", lambda s=sess: s.run(None, {"A": a, "B": b})),
+                              ("torch", lambda: torch.mm(ta, tb))):
+            call()
+            times = []
+            for _ in range(args.runs):
+                t0 = time.perf_counter()
+                call()
+                times.append(time.perf_counter() - t0)
+            gflops = 2 * n**3 / 1e9 / float(np.median(times))
+            print(json.dumps({"mode": "peak", "runtime": runtime, "threads": threads, "n": n,
+                              "gflops": round(gflops, 1)}), flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="mode", required=True)
@@ -204,6 +244,11 @@ def main() -> None:
                      help="calibration dataset folder: also quantize and measure int8")
     ins.add_argument("--n-calib", type=int, default=32)
     ins.set_defaults(func=run_input_size)
+    peak = sub.add_parser("peak", help="fp32 GEMM GFLOP/s: the ceiling for the model's rate")
+    peak.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    peak.add_argument("--n", type=int, default=2048, help="matrix side")
+    peak.add_argument("--runs", type=int, default=7)
+    peak.set_defaults(func=run_peak)
     args = parser.parse_args()
     args.func(args)
 
