@@ -13,7 +13,7 @@ import sys
 from collections.abc import Sequence
 
 from lunarnav_ml import __version__
-from lunarnav_ml.errors import LunarNavError
+from lunarnav_ml.errors import REPORTED_ERRORS
 
 # Stage modules whose ``register`` adds a subcommand, in the order ``--help`` lists them.
 STAGE_CLI_MODULES = (
@@ -51,7 +51,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.cli_args = list(args.cli_args or []) + extra
     try:
         code = args.func(args)
-    except (LunarNavError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as err:
+    except REPORTED_ERRORS as err:
         print(f"lunarnav {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

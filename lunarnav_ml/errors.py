@@ -11,3 +11,7 @@ class InputError(LunarNavError):
 
 class ConfigError(LunarNavError):
     """A bad configuration: an unknown key or an impossible value."""
+
+
+# What a command line reports in one line: ours, and a path that is missing or of the wrong kind.
+REPORTED_ERRORS = (LunarNavError, FileNotFoundError, NotADirectoryError, IsADirectoryError)

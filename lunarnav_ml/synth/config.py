@@ -253,10 +253,19 @@ def _section_from_dict(cls: type, data: Any, name: str) -> Any:
     return section
 
 
+def _default(f: dataclasses.Field) -> Any:
+    return f.default if f.default is not dataclasses.MISSING else f.default_factory()
+
+
+def _is_names(f: dataclasses.Field) -> bool:
+    """A list-of-names field (a tuple default of strings)."""
+    default = _default(f)
+    return isinstance(default, tuple) and bool(default) and isinstance(default[0], str)
+
+
 def _is_range(f: dataclasses.Field) -> bool:
     """A numeric [lo, hi] field (a tuple default of numbers)."""
-    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-    return isinstance(default, tuple) and bool(default) and not isinstance(default[0], str)
+    return isinstance(_default(f), tuple) and not _is_names(f)
 
 
 def _as_range(value: Any) -> Any:
@@ -270,12 +279,11 @@ def _as_range(value: Any) -> Any:
 
 def _check_value(key: str, value: Any, f: dataclasses.Field) -> None:
     """Raise ConfigError unless ``value`` has the field's type and lies in its bounds."""
-    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-    if isinstance(default, tuple) and default and isinstance(default[0], str):
+    if _is_names(f):
         if not isinstance(value, tuple) or not all(isinstance(v, str) for v in value):
             raise ConfigError(f"'{key}' must be a list of names, got {value!r}")
         return
-    values = _numbers(key, value, ranged=isinstance(default, tuple), integer=type(default) is int)
+    values = _numbers(key, value, ranged=_is_range(f), integer=type(_default(f)) is int)
     lo, hi = f.metadata.get("lo"), f.metadata.get("hi")
     for v in values:
         if (lo is not None and v < lo) or (hi is not None and v > hi):

@@ -7,7 +7,6 @@ share a TerrainSpec share the same ground (and a one-entry cache skips rebuildin
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -87,17 +86,18 @@ def sample_scene(cfg: SynthConfig, rng: np.random.Generator) -> SceneSpec:
         rock_density=uniform(rng, cfg.rocks.density_per_m2),
         albedo_rms=uniform(rng, cfg.hapke.albedo_texture_rms),
         n_boost=round(uniform(rng, cr.near_camera_boost)), artifacts=kinds)
-    spec = SceneSpec(
+    fov = cfg.camera.fov_deg
+    return SceneSpec(
         terrain=ter, sun_zenith_deg=uniform(rng, cfg.sun.zenith_deg),
         sun_azimuth_deg=uniform(rng, cfg.sun.azimuth_deg) % 360.0, cam_x=0.0, cam_y=0.0,
         yaw_deg=0.0, height_m=uniform(rng, cfg.camera.height_m),
         pitch_deg=uniform(rng, cfg.camera.pitch_deg), roll_deg=uniform(rng, cfg.camera.roll_deg),
         w_soil=uniform(rng, cfg.hapke.w), sensor=sample_sensor(cfg, rng),
-        noise_seed=int(rng.integers(2**31)))
-    # The field of view is drawn last and only when it is a real range, so a fixed-FOV config
-    # (the default, the paper's 90 deg) draws exactly the scenes it drew before FOV could vary.
-    fov = cfg.camera.fov_deg
-    return dataclasses.replace(spec, fov_deg=uniform(rng, fov) if fov[0] < fov[1] else fov[0])
+        noise_seed=int(rng.integers(2**31)),
+        # Keyword arguments are evaluated in order, so the field of view is drawn last, and only
+        # when it is a real range: a fixed-FOV config (the default, the paper's 90 deg) draws
+        # exactly the scenes it drew before FOV could vary.
+        fov_deg=uniform(rng, fov) if fov[0] < fov[1] else fov[0])
 
 
 def sample_sensor(cfg: SynthConfig, rng: np.random.Generator) -> SensorParams:

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from lightning.pytorch.cli import LightningCLI
 
 from lunarnav_ml.data.datamodule import DetectionDataModule
-from lunarnav_ml.errors import LunarNavError
+from lunarnav_ml.errors import REPORTED_ERRORS
 from lunarnav_ml.training.module import DetectorModule
 
 
@@ -44,7 +44,7 @@ def main(args: Sequence[str] | None = None) -> int:
     """``train.py``: :func:`run_cli` with bad input reported in one line (exit status 2)."""
     try:
         run_cli(args)
-    except (LunarNavError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as err:
+    except REPORTED_ERRORS as err:
         print(f"train.py: error: {err}", file=sys.stderr)
         return 2
     return 0
