@@ -41,6 +41,7 @@ from lunarnav_ml.export.bench import (
     conv_flops,
     random_detector,
     synthetic_frame,
+    time_calls,
 )
 from lunarnav_ml.export.onnx_export import export_onnx, load_parts
 from lunarnav_ml.export.quantize import load_calibration_images, quantize_int8
@@ -200,13 +201,7 @@ def run_peak(args: argparse.Namespace) -> None:
         torch.set_num_threads(threads)
         for runtime, call in (("onnxruntime", lambda s=sess: s.run(None, {"A": a, "B": b})),
                               ("torch", lambda: torch.mm(ta, tb))):
-            call()
-            times = []
-            for _ in range(args.runs):
-                t0 = time.perf_counter()
-                call()
-                times.append(time.perf_counter() - t0)
-            gflops = 2 * n**3 / 1e9 / float(np.median(times))
+            gflops = 2 * n**3 / 1e9 / (time_calls(call, runs=args.runs, warmup=1).median_ms / 1e3)
             print(json.dumps({"mode": "peak", "runtime": runtime, "threads": threads, "n": n,
                               "gflops": round(gflops, 1)}), flush=True)
 
