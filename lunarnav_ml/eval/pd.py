@@ -3,8 +3,10 @@
 A non-ignored ground-truth crater is detected when a predicted crater box scoring at or above
 the operating threshold has IoU >= 0.5 with it (DESIGN.md, "The paper's evaluation protocol").
 Matching is greedy by score, one prediction per ground truth. A prediction that matches no
-non-ignored crater but overlaps an ignored one (IoU >= 0.5) is neither a hit nor a false alarm;
-every other unmatched prediction is a false alarm. The operating threshold is picked on a
+non-ignored crater but lies on an ignored one is neither a hit nor a false alarm: as in
+pycocotools' crowd regions (how the AP ignores the same craters), "lies on" is the overlap
+over the prediction's own area (>= 0.5), not the IoU, so a box on part of a clipped or far
+crater is not counted against the detector. Every other unmatched prediction is a false alarm. The operating threshold is picked on a
 validation split, never on the test set.
 """
 
@@ -112,7 +114,7 @@ def _match_image(
         return hit, []
     boxes = np.asarray([d["bbox"] for d in dets], dtype=float)
     iou_real = _iou(boxes, real)
-    iou_ign = _iou(boxes, ignored)
+    iou_ign = _iou(boxes, ignored, crowd=True)
     false_alarms = []
     for i in range(len(dets)):
         candidates = [j for j in range(len(real)) if not hit[j] and iou_real[i, j] >= iou_thres]
@@ -123,11 +125,14 @@ def _match_image(
     return hit, false_alarms
 
 
-def _iou(boxes: np.ndarray, anns: list[dict]) -> np.ndarray:
+def _iou(boxes: np.ndarray, anns: list[dict], crowd: bool = False) -> np.ndarray:
+    """IoU of xywh ``boxes`` with the annotations' boxes; with ``crowd``, pycocotools' crowd
+    overlap instead: the intersection over each box's own area."""
     if not anns:
         return np.zeros((len(boxes), 0))
     gt_boxes = np.asarray([a["bbox"] for a in anns], dtype=float)
-    return np.asarray(mask_utils.iou(boxes, gt_boxes, [0] * len(anns))).reshape(len(boxes), -1)
+    flags = [int(crowd)] * len(anns)
+    return np.asarray(mask_utils.iou(boxes, gt_boxes, flags)).reshape(len(boxes), -1)
 
 
 def pick_operating_threshold(

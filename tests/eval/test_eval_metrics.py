@@ -55,6 +55,18 @@ def test_detection_on_ignored_box_is_not_a_false_alarm():
     assert coco_ap(gt, results)["per_class"]["crater"]["AP50"] == pytest.approx(0.5, abs=0.02)
 
 
+def test_box_inside_an_ignored_crater_is_not_a_false_alarm():
+    # a 10 x 10 box on part of the ignored 30 x 30 crater: IoU 0.11, but all of it lies on the
+    # crater (pycocotools' crowd overlap 1.0), as the AP counts it; half on, half off is the edge
+    gt = _gt()
+    inside = [_det(2, 1, [10, 10, 10, 10], 0.9)]
+    assert match_craters(gt, inside, threshold=0.5).false_alarms == 0
+    straddling = [_det(2, 1, [30, 10, 10, 10], 0.9)]  # 5 of its 10 px width on the crater
+    assert match_craters(gt, straddling, threshold=0.5).false_alarms == 0
+    mostly_off = [_det(2, 1, [32, 10, 10, 10], 0.9)]  # 3 of 10 px on it
+    assert match_craters(gt, mostly_off, threshold=0.5).false_alarms == 1
+
+
 def test_threshold_and_low_iou():
     gt = _gt()
     results = [_det(1, 1, [10, 10, 20, 20], 0.3), _det(1, 1, [60, 60, 40, 40], 0.9)]
