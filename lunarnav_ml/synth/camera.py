@@ -75,8 +75,8 @@ class PinholeCam:
         return np.stack([(r[k, 0] * x + r[k, 1] * y + r[k, 2]) * inv for k in range(3)], axis=1)
 
     def pixel_angle(self) -> float:
-        """Angle subtended by one pixel at the image center, rad."""
-        return 1.0 / self.fx
+        """Angle subtended by one pixel at the image center (the smaller side), rad."""
+        return 1.0 / max(self.fx, self.fy)
 
 
 def rotation_from_angles(yaw_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
@@ -123,12 +123,16 @@ class StereoRig:
 
 def make_rig(ground_xyz: np.ndarray, *, width: int, height: int, fov_deg: float,
              height_m: float, yaw_deg: float, pitch_deg: float, roll_deg: float,
-             baseline_m: float) -> StereoRig:
-    """Build the rig with the left camera ``height_m`` above ``ground_xyz`` (3,), m."""
+             baseline_m: float, aspect: float = 1.0) -> StereoRig:
+    """Build the rig with the left camera ``height_m`` above ``ground_xyz`` (3,), m.
+
+    ``fov_deg`` is the horizontal field of view; ``aspect`` = fy / fx stretches the image
+    vertically (a wide frame resized to a square one, as the Chang'e frames were).
+    """
     f = (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
     rot = rotation_from_angles(yaw_deg, pitch_deg, roll_deg)
     pos = np.asarray(ground_xyz, np.float64) + np.array([0.0, 0.0, height_m])
-    kw = {"rot": rot, "fx": f, "fy": f, "cx": (width - 1) / 2.0, "cy": (height - 1) / 2.0,
+    kw = {"rot": rot, "fx": f, "fy": f * aspect, "cx": (width - 1) / 2.0, "cy": (height - 1) / 2.0,
           "width": width, "height": height}
     left = PinholeCam(position=pos, **kw)
     right = PinholeCam(position=pos + baseline_m * rot[:, 0], **kw)

@@ -89,7 +89,11 @@ class CameraConfig:
     """Stereo camera rig (paper table: 90 deg FOV, 1.5 m height, 0.30 m baseline)."""
 
     fov_deg: Range = _f((90.0, 90.0), 10.0, 150.0,
-                        "horizontal = vertical field of view, deg (a range: drawn per scene)")
+                        "horizontal field of view, deg (a range: drawn per scene)")
+    aspect: Range = _f((1.0, 1.0), 0.5, 2.0,
+                       "fy / fx of the square image (a range: drawn per scene); 1 is the "
+                       "paper's square pixels; the Chang'e frames, 2352 x 1728 stretched to "
+                       "432 x 432, have 1.36")
     height_m: Range = _f((1.3, 1.7), 0.1, 20.0, "camera height above the ground, m")
     pitch_deg: Range = _f((15.0, 25.0), -60.0, 89.0, "depression below horizontal, deg")
     roll_deg: Range = _f((-3.0, 3.0), -45.0, 45.0, "roll about the optical axis, deg")

@@ -105,13 +105,13 @@ def _candidates(craters: list[Crater], period: float, cam: PinholeCam, h_above: 
     keep = dist - r <= max_range_m
     pc = cam.to_cam(np.stack([px, py, np.zeros_like(px)], 1) + cam.position * (1, 1, 0))
     zc = pc[:, 2]
-    half = np.arctan(0.5 * max(cam.width, cam.height) / cam.fx) * 1.05
+    half = np.arctan(0.5 * max(cam.width, cam.height) / min(cam.fx, cam.fy)) * 1.05
     lateral = np.hypot(pc[:, 0], pc[:, 1])
     keep &= zc + r + 1.0 > 0
     keep &= np.arctan2(np.maximum(lateral - r - 1.0, 0), np.maximum(zc, 1e-3)) <= half
     near = np.maximum(dist - r, 0.05)
     span = h_above * 2 * r / (near * (dist + r)) + (0.1 * r + 0.05) / near
-    keep &= (2.0 * cam.fx * span >= min_px) | (dist < 3 * r)
+    keep &= (2.0 * max(cam.fx, cam.fy) * span >= min_px) | (dist < 3 * r)
     sel = np.flatnonzero(keep)
     return [(int(k[s]), int(ti[s]) - 2, int(tj[s]) - 2) for s in sel]
 

@@ -59,7 +59,7 @@ def make_scene_rig(spec: SceneSpec, scene: Scene, cfg: SynthConfig, size: int) -
     return make_rig(np.array([spec.cam_x, spec.cam_y, gz]), width=size, height=size,
                     fov_deg=spec.fov_deg, height_m=spec.height_m, yaw_deg=spec.yaw_deg,
                     pitch_deg=spec.pitch_deg, roll_deg=spec.roll_deg,
-                    baseline_m=cfg.camera.baseline_m)
+                    baseline_m=cfg.camera.baseline_m, aspect=spec.aspect)
 
 
 def render_item(spec: SceneSpec, cfg: SynthConfig, size: int, *, stereo: bool = True,

@@ -69,6 +69,7 @@ class SceneSpec:
     sensor: SensorParams
     noise_seed: int
     fov_deg: float = 90.0
+    aspect: float = 1.0
     extra: dict = field(default_factory=dict, hash=False, compare=False)
 
 
@@ -86,7 +87,7 @@ def sample_scene(cfg: SynthConfig, rng: np.random.Generator) -> SceneSpec:
         rock_density=uniform(rng, cfg.rocks.density_per_m2),
         albedo_rms=uniform(rng, cfg.hapke.albedo_texture_rms),
         n_boost=round(uniform(rng, cr.near_camera_boost)), artifacts=kinds)
-    fov = cfg.camera.fov_deg
+    fov, aspect = cfg.camera.fov_deg, cfg.camera.aspect
     return SceneSpec(
         terrain=ter, sun_zenith_deg=uniform(rng, cfg.sun.zenith_deg),
         sun_azimuth_deg=uniform(rng, cfg.sun.azimuth_deg) % 360.0, cam_x=0.0, cam_y=0.0,
@@ -94,10 +95,12 @@ def sample_scene(cfg: SynthConfig, rng: np.random.Generator) -> SceneSpec:
         pitch_deg=uniform(rng, cfg.camera.pitch_deg), roll_deg=uniform(rng, cfg.camera.roll_deg),
         w_soil=uniform(rng, cfg.hapke.w), sensor=sample_sensor(cfg, rng),
         noise_seed=int(rng.integers(2**31)),
-        # Keyword arguments are evaluated in order, so the field of view is drawn last, and only
-        # when it is a real range: a fixed-FOV config (the default, the paper's 90 deg) draws
-        # exactly the scenes it drew before FOV could vary.
-        fov_deg=uniform(rng, fov) if fov[0] < fov[1] else fov[0])
+        # Keyword arguments are evaluated in order, so the field of view and then the pixel
+        # aspect are drawn last, and each only when it is a real range: a config that fixes them
+        # (the default: the paper's 90 deg, square pixels) draws exactly the scenes it drew
+        # before they could vary.
+        fov_deg=uniform(rng, fov) if fov[0] < fov[1] else fov[0],
+        aspect=uniform(rng, aspect) if aspect[0] < aspect[1] else aspect[0])
 
 
 def sample_sensor(cfg: SynthConfig, rng: np.random.Generator) -> SensorParams:

@@ -110,3 +110,32 @@ def test_field_of_view_is_drawn_per_scene_without_moving_the_other_draws():
     rig = make_scene_rig(spec, TerrainCache().get(spec.terrain, small), small, 64)
     assert math.isclose(rig.left.fx, 32.0 / math.tan(math.radians(15.0)))
     assert rig.camera_dict()["fov_deg"] == 30.0
+
+
+def test_pixel_aspect_is_drawn_after_the_field_of_view_and_stretches_the_image_vertically():
+    import dataclasses
+
+    import numpy as np
+
+    from lunarnav_ml.synth import SynthConfig
+    from lunarnav_ml.synth.camera import make_rig
+    from lunarnav_ml.synth.generate import item_seed
+    from lunarnav_ml.synth.scene import sample_scene
+
+    fov = SynthConfig.from_dict({"camera": {"fov_deg": [18.0, 90.0]}})
+    both = SynthConfig.from_dict({"camera": {"fov_deg": [18.0, 90.0], "aspect": [1.0, 1.5]}})
+    aspects = []
+    for i in range(6):
+        a, b = sample_scene(fov, item_seed(4, i)), sample_scene(both, item_seed(4, i))
+        assert a.aspect == 1.0 and b.fov_deg == a.fov_deg  # drawn after everything else
+        assert dataclasses.replace(b, aspect=1.0) == a
+        aspects.append(b.aspect)
+    assert all(1.0 <= x <= 1.5 for x in aspects) and np.ptp(aspects) > 0.1
+    kw = {"width": 64, "height": 64, "fov_deg": 30.0, "height_m": 1.5, "yaw_deg": 0.0,
+          "pitch_deg": 20.0, "roll_deg": 0.0, "baseline_m": 0.3}
+    square, tall = make_rig(np.zeros(3), **kw), make_rig(np.zeros(3), aspect=1.36, **kw)
+    assert tall.left.fx == square.left.fx and np.isclose(tall.left.fy, 1.36 * square.left.fy)
+    pts = np.array([[10.0, 1.0, 0.0], [12.0, -1.0, 0.2]])  # ground ahead of the camera
+    (uv_s, _), (uv_t, _) = square.left.project(pts), tall.left.project(pts)
+    assert np.allclose(uv_t[:, 0], uv_s[:, 0])
+    assert np.allclose(uv_t[:, 1] - 31.5, 1.36 * (uv_s[:, 1] - 31.5))
