@@ -41,6 +41,11 @@ class TerrainConfig:
     relief_rms_m: Range = _f((0.15, 0.6), 0.0, 20.0, "RMS height difference at 10 m lag, m")
     hurst: float = _f(0.9, 0.05, 1.0, "Hurst exponent of the fractal relief")
     roughness_rms_m: Range = _f((0.008, 0.025), 0.0, 0.5, "cm-scale roughness RMS, m")
+    # Soil detail finer than the DEM, shaded only (bump-mapped normals, albedo speckle): what a
+    # narrow camera sees of regolith close by; faded out where pixels are coarser (render.py).
+    micro_slope_rms: Range = _f((0.0, 0.0), 0.0, 2.0, "sub-DEM texture: RMS added slope")
+    micro_albedo_rms: Range = _f((0.0, 0.0), 0.0, 1.0, "sub-DEM texture: relative albedo RMS")
+    micro_wavelength_m: float = _f(0.04, 0.002, 1.0, "sub-DEM texture: longest wavelength, m")
 
 
 @dataclass

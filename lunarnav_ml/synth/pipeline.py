@@ -70,8 +70,10 @@ def render_item(spec: SceneSpec, cfg: SynthConfig, size: int, *, stereo: bool = 
     sun = sun_vector(spec.sun_zenith_deg, spec.sun_azimuth_deg, spec.yaw_deg)
     prep = R.prepare(scene.ter, sun)
     hp = hapke_params(cfg, spec.w_soil)
+    micro = R.MicroTexture(spec.micro_slope_rms, spec.micro_albedo_rms,
+                           cfg.terrain.micro_wavelength_m, salt=float(spec.terrain.seed % 997))
     kw = {"w_soil": spec.w_soil, "hp": hp, "max_range_m": cfg.camera.max_range_m,
-          "supersample": cfg.camera.supersample}
+          "supersample": cfg.camera.supersample, "micro": micro}
     left = R.render_view(prep, rig.left, **kw)
     hit = np.isfinite(left.depth)
     gain = exposure_gain(left.radiance, hit, spec.sensor.exposure)

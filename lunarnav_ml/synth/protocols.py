@@ -99,5 +99,6 @@ def _item_spec(protocol: str, cfg: SynthConfig, seed: int, d_i: int, approach: f
         cam_y=-dist * math.sin(a), yaw_deg=approach, height_m=1.5,
         pitch_deg=mid(cfg.camera.pitch_deg), roll_deg=0.0, w_soil=mid(cfg.hapke.w),
         sensor=sensor, noise_seed=int(rng.integers(2**31)), fov_deg=mid(cfg.camera.fov_deg),
-        aspect=mid(cfg.camera.aspect),
+        aspect=mid(cfg.camera.aspect), micro_slope_rms=mid(cfg.terrain.micro_slope_rms),
+        micro_albedo_rms=mid(cfg.terrain.micro_albedo_rms),
         extra={"protocol": protocol, "protocol_item": item})

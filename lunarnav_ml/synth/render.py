@@ -29,6 +29,33 @@ MATERIALS = {
     T.DARK_PANEL: (0.06, 0.35, 150.0, 0.0),
 }
 AMBIENT = 0.012  # interreflection fill, fraction of a flat sunlit surface's reflectance
+MICRO_OCTAVES = 3  # octaves of the sub-DEM soil texture, each half the wavelength of the last
+MICRO_NORM = 1.0 / 0.46  # 1 / RMS of the value-noise fBm of MICRO_OCTAVES octaves (measured)
+MICRO_GRAD_NORM = 1.0 / 0.88  # 1 / RMS of one component of its lattice-unit gradient
+
+
+@dataclass(frozen=True)
+class MicroTexture:
+    """Soil detail finer than the DEM, in the shading only (bump-mapped normals and albedo
+    speckle from a smooth value-noise fBm), faded out where a pixel covers more than a
+    quarter of an octave's wavelength so that wide views do not alias it into noise.
+
+    Attributes:
+        slope_rms: RMS of each component of the added surface slope.
+        albedo_rms: relative RMS of the albedo speckle.
+        wavelength_m: longest octave's wavelength, m.
+        salt: per-scene offset of the noise lattice.
+    """
+
+    slope_rms: float = 0.0
+    albedo_rms: float = 0.0
+    wavelength_m: float = 0.04
+    salt: float = 0.0
+
+    @property
+    def active(self) -> bool:
+        """Whether it changes the shading at all."""
+        return self.slope_rms > 0 or self.albedo_rms > 0
 
 
 @dataclass
@@ -96,8 +123,12 @@ def _surface(prep: PreparedTerrain, pts: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 def shade(prep: PreparedTerrain, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray,
-          w_soil: float, hp: HapkeParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+          w_soil: float, hp: HapkeParams, micro: MicroTexture | None = None, pix: float = 0.0
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Shade the hits of rays (N, 3) from ``origin`` (3,) at distances ``t`` (N,) (inf = miss).
+
+    ``micro`` adds sub-DEM soil texture, faded by the pixel footprint ``t * pix`` (``pix``:
+    angular ray spacing, rad).
 
     Returns:
         reflectance (N,) 1/sr (0 for misses), encoded object ids (N,) and hit points (N, 3)
@@ -112,10 +143,12 @@ def shade(prep: PreparedTerrain, origin: np.ndarray, dirs: np.ndarray, t: np.nda
     pts = np.empty((n, 3))
     hpar = np.array([hp.b, hp.c, hp.b_s0, hp.h_s, hp.b_c0, hp.h_c,
                      math.tan(math.radians(hp.theta_bar_deg))])
+    m = micro if micro is not None and micro.active else MicroTexture()
+    mpar = np.array([m.slope_rms, m.albedo_rms, m.wavelength_m, m.salt, pix])
     _shade_kernel(np.asarray(origin, np.float64), np.ascontiguousarray(dirs),
                   np.ascontiguousarray(t, np.float64), np.asarray(sun, np.float64), ter.h,
                   prep.shadow, prep.gx, prep.gy, ter.obj, ter.material, ter.albedo, ter.x0,
-                  ter.y0, ter.res, w_soil, hpar, _MAT_TABLE, AMBIENT * flat, r, ids, pts)
+                  ter.y0, ter.res, w_soil, hpar, _MAT_TABLE, AMBIENT * flat, mpar, r, ids, pts)
     return r, ids, pts
 
 
@@ -129,9 +162,46 @@ def _hash01(a: float, b: float, salt: float) -> float:
     return v - math.floor(v)
 
 
+@nb.njit(cache=True, inline="always")
+def _lattice(i: float, j: float, salt: float) -> float:
+    """Value at a noise lattice node, uniform in [-1, 1)."""
+    return 2.0 * _hash01(i, j, salt) - 1.0
+
+
+@nb.njit(cache=True)
+def _micro(x, y, footprint, micro):
+    """Sub-DEM soil texture at scene point (x, y): (albedo factor, slope x, slope y).
+
+    A value-noise fBm (smoothstep-interpolated lattice, analytic gradient) of MICRO_OCTAVES
+    octaves; an octave fades out between 4 and 2 pixel footprints per wavelength.
+    """
+    value, dx, dy = 0.0, 0.0, 0.0
+    lam, amp = micro[2], 1.0
+    for octave in range(MICRO_OCTAVES):
+        fade = min(max(lam / (2.0 * footprint) - 1.0, 0.0), 1.0)
+        if fade > 0.0:
+            u, v = x / lam, y / lam
+            i, j = math.floor(u), math.floor(v)
+            fu, fv = u - i, v - j
+            su, sv = fu * fu * (3 - 2 * fu), fv * fv * (3 - 2 * fv)
+            dsu, dsv = 6 * fu * (1 - fu), 6 * fv * (1 - fv)
+            salt = micro[3] + 7.0 * octave
+            a, b = _lattice(i, j, salt), _lattice(i + 1, j, salt)
+            c, d = _lattice(i, j + 1, salt), _lattice(i + 1, j + 1, salt)
+            k = a - b - c + d
+            w = fade * amp
+            value += w * (a + (b - a) * su + (c - a) * sv + k * su * sv)
+            dx += w * dsu * ((b - a) + k * sv)  # per wavelength: each octave's slope weighs
+            dy += w * dsv * ((c - a) + k * su)  # like its amplitude, not 2x per octave
+        lam *= 0.5
+        amp *= 0.5
+    return (max(1.0 + micro[1] * MICRO_NORM * value, 0.2),
+            micro[0] * MICRO_GRAD_NORM * dx, micro[0] * MICRO_GRAD_NORM * dy)
+
+
 @nb.njit(cache=True, parallel=True)
 def _shade_kernel(origin, dirs, t, sun, h, shadow, gxa, gya, obj, material, albedo, x0, y0,
-                  res, w_soil, hp, mat_table, ambient, out_r, out_id, out_pts):
+                  res, w_soil, hp, mat_table, ambient, micro, out_r, out_id, out_pts):
     """Per ray: its hit point; per hit: normal, sunlit flag, id, material; Hapke soil or
     Lambert + Blinn-Phong (foil with crinkled facets per node and height step); plus the
     interreflection fill. Misses get radiance 0, id 0 and a NaN point."""
@@ -150,15 +220,20 @@ def _shade_kernel(origin, dirs, t, sun, h, shadow, gxa, gya, obj, material, albe
         gy = (py - y0) / res
         sx = raycast._bilinear(gxa, gx, gy)
         sy = raycast._bilinear(gya, gx, gy)
+        i = int(math.floor(gx + 0.5)) % n  # noqa: RUF046 (numba)
+        j = int(math.floor(gy + 0.5)) % n  # noqa: RUF046 (numba)
+        mat = material[i, j]
+        alb = raycast._bilinear(albedo, gx, gy)
+        if mat == 0 and (micro[0] > 0.0 or micro[1] > 0.0):
+            speckle, msx, msy = _micro(px, py, max(t[k] * micro[4], 1e-6), micro)
+            alb *= speckle
+            sx += msx
+            sy += msy
         inv = 1.0 / math.sqrt(sx * sx + sy * sy + 1.0)
         nx, ny, nz = -sx * inv, -sy * inv, inv
         shade_h = raycast._bilinear(shadow, gx, gy) - 0.004
         lit = 1.0 if raycast._bilinear(h, gx, gy) >= shade_h else 0.0
         out_id[k] = raycast.encode_id(obj, gx, gy)
-        i = int(math.floor(gx + 0.5)) % n  # noqa: RUF046 (numba)
-        j = int(math.floor(gy + 0.5)) % n  # noqa: RUF046 (numba)
-        mat = material[i, j]
-        alb = raycast._bilinear(albedo, gx, gy)
         vx, vy, vz = -dirs[k, 0], -dirs[k, 1], -dirs[k, 2]
         kd, ks, shin, crinkle = mat_table[mat, 0], mat_table[mat, 1], mat_table[mat, 2], \
             mat_table[mat, 3]
@@ -192,7 +267,8 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def render_view(prep: PreparedTerrain, cam: PinholeCam, *, w_soil: float, hp: HapkeParams,
-                max_range_m: float, supersample: int = 1, need_ids: bool = True) -> View:
+                max_range_m: float, supersample: int = 1, need_ids: bool = True,
+                micro: MicroTexture | None = None) -> View:
     """Render one camera: radiance, z-depth, object ids and hit points, each (H, W).
 
     With ``supersample`` k > 1 the radiance is rendered at k x size and Lanczos-downsampled;
@@ -200,9 +276,10 @@ def render_view(prep: PreparedTerrain, cam: PinholeCam, *, w_soil: float, hp: Ha
     """
     h, w = cam.height, cam.width
     dirs = cam.ray_dirs(supersample)
-    t = cast(prep, cam.position, dirs, cam.pixel_angle() / supersample, max_range_m)
+    pix = cam.pixel_angle() / supersample
+    t = cast(prep, cam.position, dirs, pix, max_range_m)
     hit = np.isfinite(t)
-    rad, ids, pts = shade(prep, cam.position, dirs, t, w_soil, hp)
+    rad, ids, pts = shade(prep, cam.position, dirs, t, w_soil, hp, micro, pix)
     k = supersample
     radiance = rad.reshape(h * k, w * k).astype(np.float32)
     if k > 1:

@@ -70,6 +70,8 @@ class SceneSpec:
     noise_seed: int
     fov_deg: float = 90.0
     aspect: float = 1.0
+    micro_slope_rms: float = 0.0
+    micro_albedo_rms: float = 0.0
     extra: dict = field(default_factory=dict, hash=False, compare=False)
 
 
@@ -88,6 +90,7 @@ def sample_scene(cfg: SynthConfig, rng: np.random.Generator) -> SceneSpec:
         albedo_rms=uniform(rng, cfg.hapke.albedo_texture_rms),
         n_boost=round(uniform(rng, cr.near_camera_boost)), artifacts=kinds)
     fov, aspect = cfg.camera.fov_deg, cfg.camera.aspect
+    slope, speckle = cfg.terrain.micro_slope_rms, cfg.terrain.micro_albedo_rms
     return SceneSpec(
         terrain=ter, sun_zenith_deg=uniform(rng, cfg.sun.zenith_deg),
         sun_azimuth_deg=uniform(rng, cfg.sun.azimuth_deg) % 360.0, cam_x=0.0, cam_y=0.0,
@@ -95,12 +98,17 @@ def sample_scene(cfg: SynthConfig, rng: np.random.Generator) -> SceneSpec:
         pitch_deg=uniform(rng, cfg.camera.pitch_deg), roll_deg=uniform(rng, cfg.camera.roll_deg),
         w_soil=uniform(rng, cfg.hapke.w), sensor=sample_sensor(cfg, rng),
         noise_seed=int(rng.integers(2**31)),
-        # Keyword arguments are evaluated in order, so the field of view and then the pixel
-        # aspect are drawn last, and each only when it is a real range: a config that fixes them
-        # (the default: the paper's 90 deg, square pixels) draws exactly the scenes it drew
-        # before they could vary.
-        fov_deg=uniform(rng, fov) if fov[0] < fov[1] else fov[0],
-        aspect=uniform(rng, aspect) if aspect[0] < aspect[1] else aspect[0])
+        # Keyword arguments are evaluated in order, so the field of view, the pixel aspect and
+        # the sub-DEM texture are drawn last, each only when it is a real range: a config that
+        # fixes them (the default: the paper's 90 deg, square pixels, no texture) draws exactly
+        # the scenes it drew before they could vary.
+        fov_deg=_draw(rng, fov), aspect=_draw(rng, aspect), micro_slope_rms=_draw(rng, slope),
+        micro_albedo_rms=_draw(rng, speckle))
+
+
+def _draw(rng: np.random.Generator, r: tuple[float, float]) -> float:
+    """A value of range ``r``, drawn only when it is one (a fixed value takes no random draw)."""
+    return uniform(rng, r) if r[0] < r[1] else r[0]
 
 
 def sample_sensor(cfg: SynthConfig, rng: np.random.Generator) -> SensorParams:

@@ -89,3 +89,28 @@ def test_shadow_map_is_the_same_along_either_axis():
     drop = 0.1 * np.sqrt(1 + 0.3**2) * 0.5
     assert along_x[25, 10] == pytest.approx(1.0 - 5 * drop, abs=0.02)
     assert (along_x >= h).all()
+
+
+def test_sub_dem_texture_shows_in_a_narrow_view_and_fades_in_a_wide_one(small_cfg):
+    """The micro texture changes only the shading (same depth), adds local contrast where a
+    pixel is much finer than its wavelength, and fades out where pixels are coarse."""
+    import dataclasses
+
+    def render(fov, slope, speckle):
+        spec = dataclasses.replace(one_crater_spec(x=30.0, zenith=50.0, azimuth=60.0),
+                                   fov_deg=fov, micro_slope_rms=slope, micro_albedo_rms=speckle)
+        return P.render_item(spec, small_cfg, 128, stereo=False)
+
+    def local_contrast(img):
+        img = img.astype(float)
+        return float(np.abs(np.diff(img, axis=1)).mean())
+
+    plain, textured = render(15.0, 0.0, 0.0), render(15.0, 0.3, 0.2)
+    np.testing.assert_array_equal(plain.depth, textured.depth)
+    assert local_contrast(textured.left) > 2.0 * local_contrast(plain.left) + 1.0
+    assert (textured.left != render(15.0, 0.3, 0.2).left).sum() == 0  # deterministic
+    # 90 deg at 128 px: a pixel spans >= 5 cm beyond ~7 m, more than the 4 cm wavelength
+    wide_plain, wide_textured = render(90.0, 0.0, 0.0), render(90.0, 0.3, 0.2)
+    far = np.isfinite(wide_plain.depth) & (wide_plain.depth > 10.0)
+    assert far.sum() > 1000
+    np.testing.assert_array_equal(wide_plain.left[far], wide_textured.left[far])
