@@ -30,8 +30,8 @@ MATERIALS = {
 }
 AMBIENT = 0.012  # interreflection fill, fraction of a flat sunlit surface's reflectance
 MICRO_OCTAVES = 3  # octaves of the sub-DEM soil texture, each half the wavelength of the last
-MICRO_NORM = 1.0 / 0.46  # 1 / RMS of the value-noise fBm of MICRO_OCTAVES octaves (measured)
-MICRO_GRAD_NORM = 1.0 / 0.88  # 1 / RMS of one component of its lattice-unit gradient
+MICRO_NORM = 1.0 / 0.42  # 1 / RMS of the value-noise fBm of MICRO_OCTAVES octaves (measured)
+MICRO_GRAD_NORM = 1.0 / 0.99  # 1 / RMS of one component of its lattice-unit gradient
 
 
 @dataclass(frozen=True)
@@ -172,27 +172,32 @@ def _lattice(i: float, j: float, salt: float) -> float:
 def _micro(x, y, footprint, micro):
     """Sub-DEM soil texture at scene point (x, y): (albedo factor, slope x, slope y).
 
-    A value-noise fBm (smoothstep-interpolated lattice, analytic gradient) of MICRO_OCTAVES
-    octaves; an octave fades out between 4 and 2 pixel footprints per wavelength.
+    A value-noise fBm (lattice values blended with the quintic fade, analytic gradient) of
+    MICRO_OCTAVES octaves, each lattice turned by another angle so that no grid shows; an
+    octave fades out between 4 and 2 pixel footprints per wavelength.
     """
     value, dx, dy = 0.0, 0.0, 0.0
     lam, amp = micro[2], 1.0
     for octave in range(MICRO_OCTAVES):
         fade = min(max(lam / (2.0 * footprint) - 1.0, 0.0), 1.0)
         if fade > 0.0:
-            u, v = x / lam, y / lam
+            co, si = math.cos(0.9 * octave + 0.3), math.sin(0.9 * octave + 0.3)
+            u, v = (co * x - si * y) / lam, (si * x + co * y) / lam
             i, j = math.floor(u), math.floor(v)
             fu, fv = u - i, v - j
-            su, sv = fu * fu * (3 - 2 * fu), fv * fv * (3 - 2 * fv)
-            dsu, dsv = 6 * fu * (1 - fu), 6 * fv * (1 - fv)
+            su = fu * fu * fu * (fu * (6 * fu - 15) + 10)
+            sv = fv * fv * fv * (fv * (6 * fv - 15) + 10)
+            dsu, dsv = 30 * fu * fu * (fu - 1) ** 2, 30 * fv * fv * (fv - 1) ** 2
             salt = micro[3] + 7.0 * octave
             a, b = _lattice(i, j, salt), _lattice(i + 1, j, salt)
             c, d = _lattice(i, j + 1, salt), _lattice(i + 1, j + 1, salt)
             k = a - b - c + d
             w = fade * amp
             value += w * (a + (b - a) * su + (c - a) * sv + k * su * sv)
-            dx += w * dsu * ((b - a) + k * sv)  # per wavelength: each octave's slope weighs
-            dy += w * dsv * ((c - a) + k * su)  # like its amplitude, not 2x per octave
+            du = dsu * ((b - a) + k * sv)  # per lattice unit: each octave's slope weighs
+            dv = dsv * ((c - a) + k * su)  # like its amplitude, not 2x per octave
+            dx += w * (co * du + si * dv)
+            dy += w * (-si * du + co * dv)
         lam *= 0.5
         amp *= 0.5
     return (max(1.0 + micro[1] * MICRO_NORM * value, 0.2),
@@ -224,11 +229,6 @@ def _shade_kernel(origin, dirs, t, sun, h, shadow, gxa, gya, obj, material, albe
         j = int(math.floor(gy + 0.5)) % n  # noqa: RUF046 (numba)
         mat = material[i, j]
         alb = raycast._bilinear(albedo, gx, gy)
-        if mat == 0 and (micro[0] > 0.0 or micro[1] > 0.0):
-            speckle, msx, msy = _micro(px, py, max(t[k] * micro[4], 1e-6), micro)
-            alb *= speckle
-            sx += msx
-            sy += msy
         inv = 1.0 / math.sqrt(sx * sx + sy * sy + 1.0)
         nx, ny, nz = -sx * inv, -sy * inv, inv
         shade_h = raycast._bilinear(shadow, gx, gy) - 0.004
@@ -245,7 +245,16 @@ def _shade_kernel(origin, dirs, t, sun, h, shadow, gxa, gya, obj, material, albe
             nz += 2 * crinkle * (_hash01(a, b, 3.0) - 0.5)
             norm = math.sqrt(nx * nx + ny * ny + nz * nz)
             nx, ny, nz = nx / norm, ny / norm, nz / norm
-        mu0 = nx * sun[0] + ny * sun[1] + nz * sun[2]
+        # the sub-DEM texture tilts the normal for the light only (bump mapping): the view
+        # term keeps the DEM's normal, since a facet turned from the camera is hidden, not dark
+        lx, ly, lz = nx, ny, nz
+        if mat == 0 and (micro[0] > 0.0 or micro[1] > 0.0):
+            speckle, msx, msy = _micro(px, py, max(t[k] * micro[4], 1e-6), micro)
+            alb *= speckle
+            bx, by = sx + msx, sy + msy
+            binv = 1.0 / math.sqrt(bx * bx + by * by + 1.0)
+            lx, ly, lz = -bx * binv, -by * binv, binv
+        mu0 = lx * sun[0] + ly * sun[1] + lz * sun[2]
         mu = nx * vx + ny * vy + nz * vz
         if mat == 0:
             r = hapke_one(mu0, mu, vx * sun[0] + vy * sun[1] + vz * sun[2], w_soil * alb,
