@@ -6,8 +6,8 @@ Matching is greedy by score, one prediction per ground truth. A prediction that 
 non-ignored crater but lies on an ignored one is neither a hit nor a false alarm: as in
 pycocotools' crowd regions (how the AP ignores the same craters), "lies on" is the overlap
 over the prediction's own area (>= 0.5), not the IoU, so a box on part of a clipped or far
-crater is not counted against the detector. Every other unmatched prediction is a false alarm. The operating threshold is picked on a
-validation split, never on the test set.
+crater is not counted against the detector. Every other unmatched prediction is a false alarm.
+The operating threshold is picked on a validation split, never on the test set.
 """
 
 from __future__ import annotations

@@ -52,11 +52,6 @@ class MicroTexture:
     wavelength_m: float = 0.04
     salt: float = 0.0
 
-    @property
-    def active(self) -> bool:
-        """Whether it changes the shading at all."""
-        return self.slope_rms > 0 or self.albedo_rms > 0
-
 
 @dataclass
 class PreparedTerrain:
@@ -143,7 +138,7 @@ def shade(prep: PreparedTerrain, origin: np.ndarray, dirs: np.ndarray, t: np.nda
     pts = np.empty((n, 3))
     hpar = np.array([hp.b, hp.c, hp.b_s0, hp.h_s, hp.b_c0, hp.h_c,
                      math.tan(math.radians(hp.theta_bar_deg))])
-    m = micro if micro is not None and micro.active else MicroTexture()
+    m = micro or MicroTexture()  # the kernel skips the texture when both RMS are 0
     mpar = np.array([m.slope_rms, m.albedo_rms, m.wavelength_m, m.salt, pix])
     _shade_kernel(np.asarray(origin, np.float64), np.ascontiguousarray(dirs),
                   np.ascontiguousarray(t, np.float64), np.asarray(sun, np.float64), ter.h,
