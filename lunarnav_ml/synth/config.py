@@ -46,6 +46,10 @@ class TerrainConfig:
     micro_slope_rms: Range = _f((0.0, 0.0), 0.0, 2.0, "sub-DEM texture: RMS added slope")
     micro_albedo_rms: Range = _f((0.0, 0.0), 0.0, 1.0, "sub-DEM texture: relative albedo RMS")
     micro_wavelength_m: float = _f(0.04, 0.002, 1.0, "sub-DEM texture: longest wavelength, m")
+    # Pebbles too small for the DEM (shaded only: a lit hemisphere and its cast shadow), the
+    # dots that cover real regolith close by; unlabelled (rocks.min_diameter_m is the label's).
+    pebble_per_m2: Range = _f((0.0, 0.0), 0.0, 100.0, "sub-DEM pebbles per m^2")
+    pebble_max_radius_m: float = _f(0.04, 0.005, 0.2, "largest sub-DEM pebble radius, m")
 
 
 @dataclass

@@ -71,7 +71,9 @@ def render_item(spec: SceneSpec, cfg: SynthConfig, size: int, *, stereo: bool = 
     prep = R.prepare(scene.ter, sun)
     hp = hapke_params(cfg, spec.w_soil)
     micro = R.MicroTexture(spec.micro_slope_rms, spec.micro_albedo_rms,
-                           cfg.terrain.micro_wavelength_m, salt=float(spec.terrain.seed % 997))
+                           cfg.terrain.micro_wavelength_m, salt=float(spec.terrain.seed % 997),
+                           pebble_per_m2=spec.pebble_per_m2,
+                           pebble_max_radius_m=cfg.terrain.pebble_max_radius_m)
     kw = {"w_soil": spec.w_soil, "hp": hp, "max_range_m": cfg.camera.max_range_m,
           "supersample": cfg.camera.supersample, "micro": micro}
     left = R.render_view(prep, rig.left, **kw)

@@ -101,4 +101,5 @@ def _item_spec(protocol: str, cfg: SynthConfig, seed: int, d_i: int, approach: f
         sensor=sensor, noise_seed=int(rng.integers(2**31)), fov_deg=mid(cfg.camera.fov_deg),
         aspect=mid(cfg.camera.aspect), micro_slope_rms=mid(cfg.terrain.micro_slope_rms),
         micro_albedo_rms=mid(cfg.terrain.micro_albedo_rms),
+        pebble_per_m2=mid(cfg.terrain.pebble_per_m2),
         extra={"protocol": protocol, "protocol_item": item})

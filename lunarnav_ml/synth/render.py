@@ -32,6 +32,8 @@ AMBIENT = 0.012  # interreflection fill, fraction of a flat sunlit surface's ref
 MICRO_OCTAVES = 3  # octaves of the sub-DEM soil texture, each half the wavelength of the last
 MICRO_NORM = 1.0 / 0.42  # 1 / RMS of the value-noise fBm of MICRO_OCTAVES octaves (measured)
 MICRO_GRAD_NORM = 1.0 / 0.99  # 1 / RMS of one component of its lattice-unit gradient
+PEBBLE_ALBEDO = 1.3  # pebbles' albedo relative to the soil (the rocks' middle albedo factor)
+PEBBLE_MIN_SUN = 0.12  # the sine of the lowest sun a pebble's cast shadow follows (7 deg)
 
 
 @dataclass(frozen=True)
@@ -40,17 +42,39 @@ class MicroTexture:
     speckle from a smooth value-noise fBm), faded out where a pixel covers more than a
     quarter of an octave's wavelength so that wide views do not alias it into noise.
 
+    Pebbles are half-buried spheres too small for the DEM: each lights like a hemisphere,
+    is a little brighter than the soil and casts its shadow on the soil behind it (away from
+    the sun); one sits in a cell of a jittered grid with the probability its density gives,
+    radius between a quarter of and the full ``pebble_max_radius_m``. A pebble fades out where
+    a pixel is wider than its diameter.
+
     Attributes:
         slope_rms: RMS of each component of the added surface slope.
         albedo_rms: relative RMS of the albedo speckle.
         wavelength_m: longest octave's wavelength, m.
         salt: per-scene offset of the noise lattice.
+        pebble_per_m2: pebbles per square metre (at most one per cell of the grid).
+        pebble_max_radius_m: the largest pebble radius, m.
     """
 
     slope_rms: float = 0.0
     albedo_rms: float = 0.0
     wavelength_m: float = 0.04
     salt: float = 0.0
+    pebble_per_m2: float = 0.0
+    pebble_max_radius_m: float = 0.04
+
+    @property
+    def pebble_cell_m(self) -> float:
+        """Side of the pebble grid's cells, m: room for the largest pebble and its jitter."""
+        return max(0.1, 2.5 * self.pebble_max_radius_m)
+
+    def params(self, pix: float) -> np.ndarray:
+        """The kernel's parameter vector (``pix``: angular ray spacing, rad)."""
+        cell = self.pebble_cell_m
+        return np.array([self.slope_rms, self.albedo_rms, self.wavelength_m, self.salt, pix,
+                         min(self.pebble_per_m2 * cell * cell, 1.0), self.pebble_max_radius_m,
+                         cell])
 
 
 @dataclass
@@ -138,8 +162,7 @@ def shade(prep: PreparedTerrain, origin: np.ndarray, dirs: np.ndarray, t: np.nda
     pts = np.empty((n, 3))
     hpar = np.array([hp.b, hp.c, hp.b_s0, hp.h_s, hp.b_c0, hp.h_c,
                      math.tan(math.radians(hp.theta_bar_deg))])
-    m = micro or MicroTexture()  # the kernel skips the texture when both RMS are 0
-    mpar = np.array([m.slope_rms, m.albedo_rms, m.wavelength_m, m.salt, pix])
+    mpar = (micro or MicroTexture()).params(pix)  # the kernel skips a texture that is all 0
     _shade_kernel(np.asarray(origin, np.float64), np.ascontiguousarray(dirs),
                   np.ascontiguousarray(t, np.float64), np.asarray(sun, np.float64), ter.h,
                   prep.shadow, prep.gx, prep.gy, ter.obj, ter.material, ter.albedo, ter.x0,
@@ -199,6 +222,68 @@ def _micro(x, y, footprint, micro):
             micro[0] * MICRO_GRAD_NORM * dx, micro[0] * MICRO_GRAD_NORM * dy)
 
 
+@nb.njit(cache=True, inline="always")
+def _pebble_at(ci, cj, micro):
+    """The pebble of grid cell (ci, cj): (x, y, radius), radius 0 when the cell has none."""
+    salt, cell, rmax = micro[3] + 101.0, micro[7], micro[6]
+    if _hash01(ci, cj, salt) >= micro[5]:
+        return 0.0, 0.0, 0.0
+    r = rmax * (0.25 + 0.75 * _hash01(ci, cj, salt + 1.0) ** 2)
+    x = (ci + _hash01(ci, cj, salt + 2.0)) * cell
+    y = (cj + _hash01(ci, cj, salt + 3.0)) * cell
+    # keep the disc inside its cell, so a point looks only at its own cell for the pebble
+    x = min(max(x, ci * cell + r), (ci + 1) * cell - r)
+    y = min(max(y, cj * cell + r), (cj + 1) * cell - r)
+    return x, y, r
+
+
+@nb.njit(cache=True)
+def _pebbles(x, y, footprint, micro, sun):
+    """Pebbles at scene point (x, y): (weight, albedo factor, slope x, slope y, shadowed).
+
+    On a pebble the slopes are the hemisphere's; off one, ``shadowed`` is 1 where the
+    shadow of a pebble sunward of the point falls (the sphere's shadow ellipse, cut at
+    PEBBLE_MIN_SUN). ``weight`` fades the pebbles from 1 where a pixel spans at most their
+    largest radius to 0 where it spans their diameter.
+    """
+    rmax, cell = micro[6], micro[7]
+    weight = min(max(2.0 * rmax / footprint - 1.0, 0.0), 1.0)
+    if weight <= 0.0:
+        return 0.0, 1.0, 0.0, 0.0, 0.0
+    ci, cj = math.floor(x / cell), math.floor(y / cell)
+    px, py, r = _pebble_at(ci, cj, micro)
+    if r > 0.0:
+        ux, uy = (x - px) / r, (y - py) / r
+        rho2 = ux * ux + uy * uy
+        if rho2 < 1.0:
+            nz = math.sqrt(max(1.0 - rho2, 0.04))
+            return weight, PEBBLE_ALBEDO, -ux / nz, -uy / nz, 0.0
+    # shadow: a pebble whose ellipse (semi-axes r and r / sin(elevation) along the anti-sun
+    # direction, from its centre) covers the point lies within reach toward the sun
+    horiz = math.hypot(sun[0], sun[1])
+    if horiz < 1e-6:
+        return weight, 1.0, 0.0, 0.0, 0.0
+    sin_el = max(sun[2], PEBBLE_MIN_SUN)
+    ax, ay = -sun[0] / horiz, -sun[1] / horiz  # anti-sun direction on the ground
+    reach = rmax / sin_el
+    ex, ey = x - reach * ax, y - reach * ay  # the farthest sunward centre that can reach
+    lo_i, hi_i = math.floor((min(x, ex) - rmax) / cell), math.floor((max(x, ex) + rmax) / cell)
+    lo_j, hi_j = math.floor((min(y, ey) - rmax) / cell), math.floor((max(y, ey) + rmax) / cell)
+    for i in range(lo_i, hi_i + 1):
+        for j in range(lo_j, hi_j + 1):
+            qx, qy, q = _pebble_at(i, j, micro)
+            if q <= 0.0:
+                continue
+            dx, dy = x - qx, y - qy
+            along = dx * ax + dy * ay
+            if along < 0.0:
+                continue
+            across = -dx * ay + dy * ax
+            if (along * sin_el / q) ** 2 + (across / q) ** 2 < 1.0:
+                return weight, 1.0, 0.0, 0.0, 1.0
+    return weight, 1.0, 0.0, 0.0, 0.0
+
+
 @nb.njit(cache=True, parallel=True)
 def _shade_kernel(origin, dirs, t, sun, h, shadow, gxa, gya, obj, material, albedo, x0, y0,
                   res, w_soil, hp, mat_table, ambient, micro, out_r, out_id, out_pts):
@@ -243,8 +328,15 @@ def _shade_kernel(origin, dirs, t, sun, h, shadow, gxa, gya, obj, material, albe
         # the sub-DEM texture tilts the normal for the light only (bump mapping): the view
         # term keeps the DEM's normal, since a facet turned from the camera is hidden, not dark
         lx, ly, lz = nx, ny, nz
-        if mat == 0 and (micro[0] > 0.0 or micro[1] > 0.0):
-            speckle, msx, msy = _micro(px, py, max(t[k] * micro[4], 1e-6), micro)
+        if mat == 0 and (micro[0] > 0.0 or micro[1] > 0.0 or micro[5] > 0.0):
+            footprint = max(t[k] * micro[4], 1e-6)
+            speckle, msx, msy = _micro(px, py, footprint, micro)
+            if micro[5] > 0.0:
+                pw, palb, psx, psy, pshade = _pebbles(px, py, footprint, micro, sun)
+                speckle *= 1.0 + pw * (palb - 1.0)
+                msx += pw * psx
+                msy += pw * psy
+                lit *= 1.0 - pw * pshade
             alb *= speckle
             bx, by = sx + msx, sy + msy
             binv = 1.0 / math.sqrt(bx * bx + by * by + 1.0)

@@ -72,6 +72,7 @@ class SceneSpec:
     aspect: float = 1.0
     micro_slope_rms: float = 0.0
     micro_albedo_rms: float = 0.0
+    pebble_per_m2: float = 0.0
     extra: dict = field(default_factory=dict, hash=False, compare=False)
 
 
@@ -99,11 +100,11 @@ def sample_scene(cfg: SynthConfig, rng: np.random.Generator) -> SceneSpec:
         w_soil=uniform(rng, cfg.hapke.w), sensor=sample_sensor(cfg, rng),
         noise_seed=int(rng.integers(2**31)),
         # Keyword arguments are evaluated in order, so the field of view, the pixel aspect and
-        # the sub-DEM texture are drawn last, each only when it is a real range: a config that
-        # fixes them (the default: the paper's 90 deg, square pixels, no texture) draws exactly
-        # the scenes it drew before they could vary.
+        # the sub-DEM texture and pebbles are drawn last, each only when it is a real range: a
+        # config that fixes them (the default: the paper's 90 deg, square pixels, no texture)
+        # draws exactly the scenes it drew before they could vary.
         fov_deg=_draw(rng, fov), aspect=_draw(rng, aspect), micro_slope_rms=_draw(rng, slope),
-        micro_albedo_rms=_draw(rng, speckle))
+        micro_albedo_rms=_draw(rng, speckle), pebble_per_m2=_draw(rng, cfg.terrain.pebble_per_m2))
 
 
 def _draw(rng: np.random.Generator, r: tuple[float, float]) -> float:

@@ -114,3 +114,77 @@ def test_sub_dem_texture_shows_in_a_narrow_view_and_fades_in_a_wide_one(small_cf
     far = np.isfinite(wide_plain.depth) & (wide_plain.depth > 10.0)
     assert far.sum() > 1000
     np.testing.assert_array_equal(wide_plain.left[far], wide_textured.left[far])
+
+
+def test_pebble_shadow_falls_away_from_the_sun_and_fades_with_the_footprint():
+    """A pebble lights like a hemisphere (its sunward side faces the sun), shadows the soil
+    behind it along the anti-sun direction (length r / sin(elevation)), not in front of it,
+    and is gone where a pixel spans its diameter."""
+    import math
+
+    from lunarnav_ml.synth import render as R
+
+    micro = R.MicroTexture(pebble_per_m2=100.0, pebble_max_radius_m=0.04, salt=3.0).params(1e-3)
+    assert micro[5] == 1.0  # one pebble in every cell
+    micro[5] = 0.2  # now one cell in five: take a pebble with no neighbour within 2 cells
+    cell = micro[7]
+    ci, cj = next((i, j) for i in range(40) for j in range(40)
+                  if _alone(R, micro, i, j))
+    x, y, r = R._pebble_at(ci, cj, micro)
+    assert 0.01 - 1e-12 <= r <= 0.04
+    assert ci * cell <= x - r and x + r <= (ci + 1) * cell  # inside its cell
+    assert cj * cell <= y - r and y + r <= (cj + 1) * cell
+    elev = math.radians(30.0)
+    sun = np.array([math.cos(elev), 0.0, math.sin(elev)])  # sun toward +x
+    fine = 1e-3  # a 1 mm pixel
+    w, alb, sx, sy, shadow = R._pebbles(x + 0.5 * r, y, fine, micro, sun)
+    assert (w, alb, shadow) == (1.0, R.PEBBLE_ALBEDO, 0.0)
+    assert sx < 0.0 and abs(sy) < 1e-12  # the surface falls away from the pebble's top
+    assert R._pebbles(x - 1.5 * r, y, fine, micro, sun)[4] == 1.0  # behind: shadowed
+    assert R._pebbles(x - 1.9 * r, y, fine, micro, sun)[4] == 1.0  # r / sin(30 deg) = 2 r
+    assert R._pebbles(x - 2.1 * r, y, fine, micro, sun)[4] == 0.0
+    assert R._pebbles(x + 1.5 * r, y, fine, micro, sun)[4] == 0.0  # in front: lit
+    assert R._pebbles(x, y + 1.2 * r, fine, micro, sun)[4] == 0.0  # beside it
+    assert R._pebbles(x - 1.5 * r, y, 2.0 * 0.04, micro, sun)[0] == 0.0  # a pixel too coarse
+
+
+def _alone(R, micro, i, j):
+    """Cell (i, j) has a pebble and no other cell within two has one."""
+    return R._pebble_at(i, j, micro)[2] > 0 and all(
+        R._pebble_at(i + a, j + b, micro)[2] == 0
+        for a in range(-2, 3) for b in range(-2, 3) if (a, b) != (0, 0))
+
+
+def test_pebbles_dot_a_narrow_view_only_in_its_shading(small_cfg):
+    """Pebbles change the shading only (same depth), add dark (shadow) and bright pixels
+    close by in a narrow view, are deterministic, and leave a wide view's far field alone."""
+    import dataclasses
+
+    def render(fov, pebbles):
+        spec = dataclasses.replace(one_crater_spec(x=30.0, zenith=60.0, azimuth=60.0),
+                                   fov_deg=fov, pebble_per_m2=pebbles)
+        return P.render_item(spec, small_cfg, 128, stereo=False)
+
+    plain, dotted = render(15.0, 0.0), render(15.0, 40.0)
+    np.testing.assert_array_equal(plain.depth, dotted.depth)
+    diff = dotted.left.astype(int) - plain.left.astype(int)
+    assert (diff < -10).mean() > 0.01 and (diff > 5).mean() > 0.005
+    np.testing.assert_array_equal(dotted.left, render(15.0, 40.0).left)
+    # the far field's radiance (the 8-bit images differ there too: the bright pebbles close
+    # by move the 99.5th-percentile exposure)
+    from lunarnav_ml.synth import render as R
+    from lunarnav_ml.synth.camera import sun_vector
+    from lunarnav_ml.synth.scene import hapke_params
+
+    spec = dataclasses.replace(one_crater_spec(x=30.0, zenith=60.0, azimuth=60.0), fov_deg=90.0)
+    scene = P.TerrainCache().get(spec.terrain, small_cfg)
+    cam = P.make_scene_rig(spec, scene, small_cfg, 128).left
+    prep = R.prepare(scene.ter, sun_vector(spec.sun_zenith_deg, spec.sun_azimuth_deg, 0.0))
+    kw = {"w_soil": spec.w_soil, "hp": hapke_params(small_cfg, spec.w_soil), "max_range_m": 60.0}
+    wide_plain = R.render_view(prep, cam, **kw)
+    wide_dotted = R.render_view(prep, cam, micro=R.MicroTexture(pebble_per_m2=40.0), **kw)
+    far = np.isfinite(wide_plain.depth) & (wide_plain.depth > 10.0)
+    near = np.isfinite(wide_plain.depth) & (wide_plain.depth < 4.0)
+    assert far.sum() > 1000 and near.sum() > 100
+    np.testing.assert_array_equal(wide_plain.radiance[far], wide_dotted.radiance[far])
+    assert (wide_plain.radiance[near] != wide_dotted.radiance[near]).mean() > 0.05
