@@ -7,7 +7,7 @@ import pytest
 from lunarnav_ml.errors import ConfigError
 from lunarnav_ml.synth import SynthConfig
 
-CONFIGS = sorted((Path(__file__).parents[2] / "configs" / "synth").glob("*.yaml"))
+CONFIGS = sorted((Path(__file__).parents[2] / "configs" / "synth").rglob("*.yaml"))  # arms too
 
 
 def test_defaults_are_valid():
