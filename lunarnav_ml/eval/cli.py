@@ -116,7 +116,7 @@ def run_transfer(args: argparse.Namespace) -> int:
     """The real-data transfer report of ``lunarnav eval --task transfer``."""
     from lunarnav_ml.data.coco import read_coco
     from lunarnav_ml.eval.predict import predict_coco
-    from lunarnav_ml.realdata.transfer import write_transfer_report
+    from lunarnav_ml.realdata.transfer import fmt_metric, write_transfer_report
     from lunarnav_ml.utils import atomic
 
     sources = {k: v for k, v in (("--checkpoint", args.checkpoint), ("--onnx", args.onnx),
@@ -139,9 +139,10 @@ def run_transfer(args: argparse.Namespace) -> int:
         metrics = write_transfer_report(gt, results, gt_path.parent, work,
                                         f"Transfer report: {args.test_gt}",
                                         gallery_images=args.overlays)
-    crater, k = metrics["all"]["per_class"]["crater"], metrics["budgets"][-1]
-    print(f"crater recall@{k} {crater[f'recall@{k}']}  AP50 (lower bound) {crater['AP50']}  "
-          f"-> {args.out}")
+    crater, ks = metrics["all"]["per_class"]["crater"], metrics["budgets"]
+    recalls = " / ".join(fmt_metric(crater[f"recall@{k}"]) for k in ks)
+    print(f"crater recall@{'/'.join(map(str, ks))} {recalls}  "
+          f"AP50 (lower bound) {fmt_metric(crater['AP50'])}  -> {args.out}")
     return 0
 
 

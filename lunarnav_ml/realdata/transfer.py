@@ -133,13 +133,14 @@ def render_markdown(metrics: dict[str, Any], title: str) -> str:
                   "| class | labelled boxes | " + " | ".join(keys) + " | AP50 (lower bound) |",
                   "|---" * (len(keys) + 3) + "|"]
         for cls, row in group["per_class"].items():
-            lines.append(f"| {cls} | {row['n_gt']} | " + " | ".join(_fmt(row[k]) for k in keys)
-                         + f" | {_fmt(row['AP50'])} |")
+            lines.append(f"| {cls} | {row['n_gt']} | " + " | ".join(fmt_metric(row[k]) for k in keys)
+                         + f" | {fmt_metric(row['AP50'])} |")
         lines.append("")
     return "\n".join(lines)
 
 
-def _fmt(x: float | None) -> str:
+def fmt_metric(x: float | None) -> str:
+    """A metric to three decimals, ``-`` where it is undefined (no ground truth)."""
     return "-" if x is None else f"{x:.3f}"
 
 

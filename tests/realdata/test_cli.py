@@ -29,6 +29,7 @@ def test_import_real_then_transfer_eval(tmp_path, capsys):
     report = tmp_path / "transfer"
     assert main(["eval", "--task", "transfer", "--gt", str(gt_path), "--test-results",
                  str(tmp_path / "dets.json"), "--out", str(report), "--no-progress"]) == 0
+    assert "crater recall@1/3/5/10 1.000 / 1.000 / 1.000 / 1.000" in capsys.readouterr().out
     metrics = json.loads((report / "transfer_metrics.json").read_text())
     assert metrics["all"]["per_class"]["crater"]["recall@1"] == 1.0
     assert set(metrics["per_camera"]) == {"ce3_tcam", "pcam_pan"}
