@@ -133,8 +133,8 @@ def render_markdown(metrics: dict[str, Any], title: str) -> str:
                   "| class | labelled boxes | " + " | ".join(keys) + " | AP50 (lower bound) |",
                   "|---" * (len(keys) + 3) + "|"]
         for cls, row in group["per_class"].items():
-            lines.append(f"| {cls} | {row['n_gt']} | " + " | ".join(fmt_metric(row[k]) for k in keys)
-                         + f" | {fmt_metric(row['AP50'])} |")
+            cells = [fmt_metric(row[k]) for k in keys] + [fmt_metric(row["AP50"])]
+            lines.append(f"| {cls} | {row['n_gt']} | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
 
