@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from lunarnav_ml.errors import InputError
+from lunarnav_ml.eval.tta import TTAConfig, TTAPredictor, add_tta_arguments, tta_config
 
 TASKS = ("detection", "geometry", "baselines-lidar", "baselines-stereo", "transfer")
 
@@ -33,16 +34,20 @@ def load_json(path: Path, what: str) -> Any:
         raise InputError(f"{path}: {what} is not valid JSON ({err})") from err
 
 
-def load_predictor(path: Path, threads: int, img_size: int | None = None) -> Any:
+def load_predictor(path: Path, threads: int, img_size: int | None = None,
+                   tta: TTAConfig | None = None) -> Any:
     """An ONNX file runs through the torch-free runtime; anything else loads as a checkpoint.
-    ``img_size``: network input side (default the model's own)."""
+    ``img_size``: network input side (default the model's own); ``tta``: wrap it in
+    test-time augmentation."""
     if Path(path).suffix == ".onnx":
         from lunarnav_ml.runtime import OnnxDetector
 
-        return OnnxDetector(path, threads=threads, img_size=img_size)
-    from lunarnav_ml.training.api import load_detector
+        predictor = OnnxDetector(path, threads=threads, img_size=img_size)
+    else:
+        from lunarnav_ml.training.api import load_detector
 
-    return load_detector(path, img_size)
+        predictor = load_detector(path, img_size)
+    return predictor if tta is None else TTAPredictor(predictor, tta)
 
 
 def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]]:
@@ -57,7 +62,7 @@ def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]
         return gt, load_json(results_path, "detections")
     if args.model is None:
         raise InputError(f"eval: give --model or --{split}-results for the {split} split")
-    predictor = load_predictor(args.model, args.threads, args.img_size)
+    predictor = load_predictor(args.model, args.threads, args.img_size, tta_config(args))
     return gt, predict_coco(predictor, gt, gt_path.parent, desc=split, progress=not args.no_progress)
 
 
@@ -131,7 +136,7 @@ def run_transfer(args: argparse.Namespace) -> int:
         results = load_json(args.test_results, "detections")
     else:  # load_predictor runs .onnx files through onnxruntime, checkpoints through torch
         predictor = load_predictor(args.onnx or args.checkpoint or args.model, args.threads,
-                                   args.img_size)
+                                   args.img_size, tta_config(args))
         results = predict_coco(predictor, gt, gt_path.parent, desc="transfer",
                                progress=not args.no_progress)
     with atomic.atomic_dir(args.out) as work:
@@ -176,6 +181,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     p.add_argument("--img-size", type=int, default=None,
                    help="(detection, transfer) network input side, px; default the model's")
+    add_tta_arguments(p)
     p.add_argument("--overlays", type=int, default=12, help="overlay images to write")
     p.add_argument("--ellipse-source", choices=("fit", "label", "box"), default="fit",
                    help="(geometry) the fitted ellipse, the labelled one (isolates stereo + "

@@ -57,6 +57,14 @@ class OnnxDetector:
                               f"{meta.input_size}; got {size}")
         return int(size[0]), int(size[1])
 
+    def set_img_size(self, img_size: int | tuple[int, int]) -> None:
+        """Run at another network input (a model exported with dynamic height/width only).
+
+        Raises:
+            ConfigError: not a multiple of the largest stride, or the model's input is fixed.
+        """
+        self.img_size = self._resolve_size(img_size)
+
     def preprocess(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, list[Letterbox]]:
         """Check, letterbox and normalize images.
 

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.eval.tta import TTAPredictor, add_tta_arguments, tta_config
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
 
@@ -38,6 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--gallery", type=int, default=12,
                    help="overlays in gallery.png, spread over the images (0: no gallery)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_tta_arguments(p)
     p.set_defaults(func=run_detect)
 
 
@@ -67,6 +69,8 @@ def run_detect(args: argparse.Namespace) -> int:
         raise ConfigError(f"no --weights given and no shipped weights at {weights}")
     files = list_images(args.source)
     detector = load_detector(weights, args.img_size)
+    if (tta := tta_config(args)) is not None:
+        detector = TTAPredictor(detector, tta)
     out = detect_files(detector, files, args.out, conf_thres=args.conf, iou_thres=args.iou,
                        overlay_thres=args.overlay_conf, batch=args.batch,
                        progress=not args.quiet, gallery=args.gallery)
