@@ -80,6 +80,11 @@ class TTAPredictor:
         stride = (max(predictor.strides) if hasattr(predictor, "strides")
                   else int(predictor.metadata.max_stride))
         self.sides = tta_sides(self.base_side, config.scales, stride)
+        try:  # a model that cannot run at a side says so now, not halfway through a set
+            for side in self.sides:
+                predictor.set_img_size(side)
+        finally:
+            predictor.set_img_size(self.base_side)
 
     @property
     def passes(self) -> int:
@@ -114,12 +119,15 @@ class TTAPredictor:
 
         h, w = shape[:2]
         scale = np.array([w, h, w, h], dtype=np.float64)
-        boxes = [np.clip(np.asarray(p["boxes"], np.float64).reshape(-1, 4) / scale, 0.0, 1.0)
-                 for p in preds]
+        boxes, scores, labels = [], [], []
+        for p in preds:  # in [0, 1] image units; boxes wholly off the image are dropped
+            b = np.clip(np.asarray(p["boxes"], np.float64).reshape(-1, 4) / scale, 0.0, 1.0)
+            keep = (b[:, 2] > b[:, 0]) & (b[:, 3] > b[:, 1])
+            boxes.append(b[keep])
+            scores.append(np.asarray(p["scores"], np.float64)[keep])
+            labels.append(np.asarray(p["labels"], np.int64)[keep])
         fused, scores, labels = weighted_boxes_fusion(
-            boxes, [np.asarray(p["scores"], np.float64) for p in preds],
-            [np.asarray(p["labels"], np.int64) for p in preds],
-            iou_thr=self.config.fuse_iou, skip_box_thr=conf_thres)
+            boxes, scores, labels, iou_thr=self.config.fuse_iou, skip_box_thr=conf_thres)
         order = np.argsort(-np.asarray(scores), kind="stable")[:max_det]
         return {"boxes": (np.asarray(fused).reshape(-1, 4)[order] * scale).astype(np.float32),
                 "scores": np.asarray(scores, np.float32)[order],
