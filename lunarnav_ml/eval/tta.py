@@ -99,6 +99,15 @@ class TTAPredictor:
         "labels"}``, highest score first, at most ``max_det``."""
         if not images:
             return []
+        runs = self.run_passes(images, conf_thres, iou_thres, max_det)
+        return [fuse_passes([run[i] for run in runs], image.shape, self.config.fuse_iou,
+                            conf_thres, max_det) for i, image in enumerate(images)]
+
+    def run_passes(self, images: list[np.ndarray], conf_thres: float = 0.001,
+                   iou_thres: float = 0.6, max_det: int = 300
+                   ) -> list[list[dict[str, np.ndarray]]]:
+        """Every pass's detections in image pixels, before fusion: ``[pass][image]``, the
+        passes in the order side 1, side 1 mirrored, side 2, ..."""
         runs: list[list[dict[str, np.ndarray]]] = []
         mirrored = [np.ascontiguousarray(im[:, ::-1]) for im in images] if self.config.flip else []
         try:
@@ -110,28 +119,31 @@ class TTAPredictor:
                     runs.append([_unmirror(p, im.shape[1]) for p, im in zip(preds, images)])
         finally:
             self.predictor.set_img_size(self.base_side)
-        return [self._fuse([run[i] for run in runs], image.shape, conf_thres, max_det)
-                for i, image in enumerate(images)]
+        return runs
 
-    def _fuse(self, preds: list[dict[str, np.ndarray]], shape: tuple[int, ...],
-              conf_thres: float, max_det: int) -> dict[str, np.ndarray]:
-        from ensemble_boxes import weighted_boxes_fusion  # pulls in pandas: only when used
 
-        h, w = shape[:2]
-        scale = np.array([w, h, w, h], dtype=np.float64)
-        boxes, scores, labels = [], [], []
-        for p in preds:  # in [0, 1] image units; boxes wholly off the image are dropped
-            b = np.clip(np.asarray(p["boxes"], np.float64).reshape(-1, 4) / scale, 0.0, 1.0)
-            keep = (b[:, 2] > b[:, 0]) & (b[:, 3] > b[:, 1])
-            boxes.append(b[keep])
-            scores.append(np.asarray(p["scores"], np.float64)[keep])
-            labels.append(np.asarray(p["labels"], np.int64)[keep])
-        fused, scores, labels = weighted_boxes_fusion(
-            boxes, scores, labels, iou_thr=self.config.fuse_iou, skip_box_thr=conf_thres)
-        order = np.argsort(-np.asarray(scores), kind="stable")[:max_det]
-        return {"boxes": (np.asarray(fused).reshape(-1, 4)[order] * scale).astype(np.float32),
-                "scores": np.asarray(scores, np.float32)[order],
-                "labels": np.asarray(labels).astype(np.int64)[order]}
+def fuse_passes(preds: list[dict[str, np.ndarray]], shape: tuple[int, ...],
+                fuse_iou: float = DEFAULT_FUSE_IOU, conf_thres: float = 0.001,
+                max_det: int = 300) -> dict[str, np.ndarray]:
+    """One image's detections from several passes (``{"boxes" xyxy px, "scores", "labels"}``
+    each) fused class by class with weighted boxes fusion; highest score first."""
+    from ensemble_boxes import weighted_boxes_fusion  # pulls in pandas: only when used
+
+    h, w = shape[:2]
+    scale = np.array([w, h, w, h], dtype=np.float64)
+    boxes, scores, labels = [], [], []
+    for p in preds:  # in [0, 1] image units; boxes wholly off the image are dropped
+        b = np.clip(np.asarray(p["boxes"], np.float64).reshape(-1, 4) / scale, 0.0, 1.0)
+        keep = (b[:, 2] > b[:, 0]) & (b[:, 3] > b[:, 1])
+        boxes.append(b[keep])
+        scores.append(np.asarray(p["scores"], np.float64)[keep])
+        labels.append(np.asarray(p["labels"], np.int64)[keep])
+    fused, scores, labels = weighted_boxes_fusion(boxes, scores, labels, iou_thr=fuse_iou,
+                                                  skip_box_thr=conf_thres)
+    order = np.argsort(-np.asarray(scores), kind="stable")[:max_det]
+    return {"boxes": (np.asarray(fused).reshape(-1, 4)[order] * scale).astype(np.float32),
+            "scores": np.asarray(scores, np.float32)[order],
+            "labels": np.asarray(labels).astype(np.int64)[order]}
 
 
 def _unmirror(pred: dict[str, np.ndarray], width: int) -> dict[str, np.ndarray]:
