@@ -132,6 +132,7 @@ def run_transfer(args: argparse.Namespace) -> int:
                          f"--model or --test-results (got {', '.join(sources) or 'none'})")
     gt_path = Path(args.test_gt)
     gt, _ = read_coco(gt_path)  # validated labels, every image file present
+    title = f"Transfer report: {args.test_gt}"
     if args.test_results is not None:
         results = load_json(args.test_results, "detections")
     else:  # load_predictor runs .onnx files through onnxruntime, checkpoints through torch
@@ -139,10 +140,12 @@ def run_transfer(args: argparse.Namespace) -> int:
                                    args.img_size, tta_config(args))
         results = predict_coco(predictor, gt, gt_path.parent, desc="transfer",
                                progress=not args.no_progress)
+        if isinstance(predictor, TTAPredictor):
+            title += (f" (test-time augmentation: sides {predictor.sides} px"
+                      f"{', each mirrored' if predictor.config.flip else ''}, fused)")
     with atomic.atomic_dir(args.out) as work:
         atomic.write_json(work / "detections.json", results, indent=None)
-        metrics = write_transfer_report(gt, results, gt_path.parent, work,
-                                        f"Transfer report: {args.test_gt}",
+        metrics = write_transfer_report(gt, results, gt_path.parent, work, title,
                                         gallery_images=args.overlays)
     crater, ks = metrics["all"]["per_class"]["crater"], metrics["budgets"]
     recalls = " / ".join(fmt_metric(crater[f"recall@{k}"]) for k in ks)

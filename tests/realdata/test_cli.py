@@ -4,6 +4,7 @@ one line on stderr with exit code 2."""
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -74,3 +75,21 @@ def test_help(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["import-real", "--help"])
     assert exc.value.code == 0 and "--skip-bad" in capsys.readouterr().out
+
+
+def test_transfer_eval_with_tta_names_it_and_rejects_bad_scales(tmp_path, capsys):
+    src, out = make_roboflow(tmp_path / "export"), tmp_path / "imported"
+    main(["import-real", str(src), "--out", str(out), "--splits", "valid"])
+    gt = str(out / "valid" / "annotations.json")
+    weights = str(Path(__file__).resolve().parents[2] / "lunarnav_ml" / "weights" / "small.pt")
+    report = tmp_path / "tta"
+    assert main(["eval", "--task", "transfer", "--gt", gt, "--checkpoint", weights, "--img-size",
+                 "160", "--tta", "--out", str(report), "--no-progress", "--overlays", "0"]) == 0
+    assert "crater recall@1/3/5/10" in capsys.readouterr().out
+    text = (report / "transfer_report.md").read_text()
+    assert "test-time augmentation: sides [128, 160, 192] px, each mirrored" in text
+    assert json.loads((report / "detections.json").read_text())
+    assert main(["eval", "--task", "transfer", "--gt", gt, "--checkpoint", weights, "--tta",
+                 "--tta-scales", "1", "-0.5", "--out", str(tmp_path / "bad")]) == 2
+    _one_line_error(capsys, "tta scales")
+    assert not (tmp_path / "bad").exists()
