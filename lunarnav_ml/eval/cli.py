@@ -84,7 +84,9 @@ def run_detection(args: argparse.Namespace) -> int:
     metrics = detection_metrics(gt, results, threshold)
     with atomic.atomic_dir(args.out) as work:
         atomic.write_json(work / "detections.json", results, indent=None)
-        write_report(metrics, work, f"Detection report: {args.test_gt}")
+        tta = tta_config(args) if args.test_results is None else None
+        write_report(metrics, work, f"Detection report: {args.test_gt}"
+                     + (f" ({tta.describe()})" if tta else ""))
         write_overlays(gt, results, threshold, Path(args.test_gt).parent, work / "overlays",
                        args.overlays)
     crater = metrics["coco"]["per_class"]["crater"]

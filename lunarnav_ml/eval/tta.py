@@ -47,6 +47,12 @@ class TTAConfig:
             raise ConfigError(f"tta fuse_iou: expected a value in (0, 1), got {self.fuse_iou}")
         object.__setattr__(self, "scales", scales)
 
+    def describe(self) -> str:
+        """One line for report titles."""
+        scales = " / ".join(f"{s:g}" for s in self.scales)
+        return (f"test-time augmentation: {scales} x the input side"
+                f"{', each mirrored' if self.flip else ''}, fused")
+
 
 def tta_sides(base: int, scales: Sequence[float], stride: int) -> list[int]:
     """The distinct network sides ``scale * base`` rounded to a multiple of ``stride`` (at

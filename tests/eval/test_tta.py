@@ -130,3 +130,18 @@ def test_detect_cli_with_tta(tmp_path, frame):
         assert args.func(args) == 0
         out[name] = json.loads((tmp_path / name / "results.json").read_text())
     assert out["tta"] and out["tta"] != out["plain"]
+
+
+def test_detection_report_names_tta(tmp_path, onnx_path):
+    from lunarnav_ml.cli import main
+    from tests.detector_fixtures import make_coco
+
+    gt = make_coco(tmp_path / "set", n_images=3, size=96)
+    assert TTAConfig().describe() == ("test-time augmentation: 0.8 / 1 / 1.2 x the input side, "
+                                      "each mirrored, fused")
+    for name, flags in (("plain", []), ("tta", ["--tta"])):
+        assert main(["eval", "--task", "detection", "--test-gt", str(gt), "--model",
+                     str(onnx_path), "--threshold", "0.5", "--out", str(tmp_path / name),
+                     "--no-progress", "--overlays", "0", *flags]) == 0
+    assert "test-time augmentation" not in (tmp_path / "plain" / "report.md").read_text()
+    assert TTAConfig().describe() in (tmp_path / "tta" / "report.md").read_text()
