@@ -4,9 +4,9 @@ Each pass letterboxes the image to another network side (``scale x`` the model's
 to its stride) and optionally mirrors it left-right; its boxes are mapped back to the image and
 all passes are fused class by class with weighted boxes fusion (Solovyev et al. 2021, through
 the ``ensemble-boxes`` package): overlapping boxes of one class (IoU above ``fuse_iou``) become
-one box, their coordinates weighted by score, scored by their mean score over all passes. A box
-that every pass finds keeps its score; one that a single pass finds is scaled down by the
-number of passes, which is what re-ranks a frame's detections (chosen on the real `valid/`
+one box, their coordinates weighted by score, scored by the sum of their scores over the
+number of passes. A box that every pass finds keeps its score; one that a single pass finds is
+divided by the number of passes, which is what re-ranks a frame's detections (chosen on the real `valid/`
 split: see BENCHMARKS.md, issue 7).
 """
 
@@ -97,6 +97,8 @@ class TTAPredictor:
         return len(self.sides) * (2 if self.config.flip else 1)
 
     def __getattr__(self, name: str) -> Any:  # class_names, to_coco_results, ...
+        if name == "predictor":  # not set yet (copy, unpickling): no recursion
+            raise AttributeError(name)
         return getattr(self.predictor, name)
 
     def predict(self, images: list[np.ndarray], conf_thres: float = 0.001,
