@@ -76,11 +76,13 @@ def run_detection(args: argparse.Namespace) -> int:
     if args.threshold is None and args.val_gt is None:
         raise InputError("eval: the operating threshold comes from a validation split: give "
                          "--val-gt (with --model or --val-results), or --threshold")
-    threshold = args.threshold
+    threshold, val = args.threshold, None
     if threshold is None:
-        val_gt, val_results = _results_for(args, "val")
-        threshold = pick_operating_threshold(val_gt, val_results, args.max_fa)
-    gt, results = _results_for(args, "test")
+        val = _results_for(args, "val")
+        threshold = pick_operating_threshold(*val, args.max_fa)
+    same_split = (val is not None and args.test_results is None and args.val_results is None
+                  and Path(args.val_gt).resolve() == Path(args.test_gt).resolve())
+    gt, results = val if same_split else _results_for(args, "test")  # one run per split
     metrics = detection_metrics(gt, results, threshold)
     with atomic.atomic_dir(args.out) as work:
         atomic.write_json(work / "detections.json", results, indent=None)
