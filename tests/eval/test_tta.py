@@ -145,3 +145,13 @@ def test_detection_report_names_tta(tmp_path, onnx_path):
                      "--no-progress", "--overlays", "0", *flags]) == 0
     assert "test-time augmentation" not in (tmp_path / "plain" / "report.md").read_text()
     assert TTAConfig().describe() in (tmp_path / "tta" / "report.md").read_text()
+
+
+def test_no_detections_in_any_pass_fuse_to_empty_arrays():
+    from lunarnav_ml.eval.tta import fuse_passes
+
+    empty = {"boxes": np.zeros((0, 4), np.float32), "scores": np.zeros(0, np.float32),
+             "labels": np.zeros(0, np.int64)}
+    out = fuse_passes([empty, empty], (60, 100, 3))
+    assert out["boxes"].shape == (0, 4) and out["boxes"].dtype == np.float32
+    assert out["scores"].shape == (0,) and out["labels"].dtype == np.int64
