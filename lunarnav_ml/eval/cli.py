@@ -145,8 +145,7 @@ def run_transfer(args: argparse.Namespace) -> int:
         results = predict_coco(predictor, gt, gt_path.parent, desc="transfer",
                                progress=not args.no_progress)
         if isinstance(predictor, TTAPredictor):
-            title += (f" (test-time augmentation: sides {predictor.sides} px"
-                      f"{', each mirrored' if predictor.config.flip else ''}, fused)")
+            title += f" ({predictor.describe()})"
     with atomic.atomic_dir(args.out) as work:
         atomic.write_json(work / "detections.json", results, indent=None)
         metrics = write_transfer_report(gt, results, gt_path.parent, work, title,

@@ -47,11 +47,11 @@ class TTAConfig:
             raise ConfigError(f"tta fuse_iou: expected a value in (0, 1), got {self.fuse_iou}")
         object.__setattr__(self, "scales", scales)
 
-    def describe(self) -> str:
-        """One line for report titles."""
-        scales = " / ".join(f"{s:g}" for s in self.scales)
-        return (f"test-time augmentation: {scales} x the input side"
-                f"{', each mirrored' if self.flip else ''}, fused")
+    def describe(self, sides: Sequence[int] | None = None) -> str:
+        """One line for report titles: the scales, or the network ``sides`` (px) they gave."""
+        what = (f"sides {list(sides)} px" if sides is not None
+                else " / ".join(f"{s:g}" for s in self.scales) + " x the input side")
+        return f"test-time augmentation: {what}{', each mirrored' if self.flip else ''}, fused"
 
 
 def tta_sides(base: int, scales: Sequence[float], stride: int) -> list[int]:
@@ -95,6 +95,10 @@ class TTAPredictor:
     @property
     def passes(self) -> int:
         return len(self.sides) * (2 if self.config.flip else 1)
+
+    def describe(self) -> str:
+        """One line for report titles, with the sides this model runs at."""
+        return self.config.describe(self.sides)
 
     def __getattr__(self, name: str) -> Any:  # class_names, to_coco_results, ...
         if name == "predictor":  # not set yet (copy, unpickling): no recursion
