@@ -11,6 +11,10 @@ Stage 3  with the orbital-map prior: for each detection, the map craters of simi
          (and near the prior position); a parametric model of each (diameter, depth) sampled in
          points is placed on a 2D grid around the estimate and scored against the voxelized
          cloud with the paper's four rules; the best placement of the best map crater wins.
+         Each map crater is also placed on a grid around its prior center (``prior_search_m``,
+         kept when its shadow is emptier than open ground at the same range), and the better
+         scoring of the two placements is kept: an addition to the paper, which starts only
+         from detections.
 
 All stages work in the gravity-aligned ground frame (plane z = 0, sensor at (0, 0, h)); results
 are returned in the frame of the input points.
@@ -58,12 +62,16 @@ class LidarConfig:
         height_tol_m: a voxel this far above a model point is "higher than the point", m.
         min_score: placements scoring below this (mean per model point, 0 = perfect, -1 = every
             point penalized) are rejected.
-        prior_search_m: a map crater that no Stage-2 estimate matched is also searched for
-            around its prior center, on a grid of this half-width (m; 0 disables): far away
-            a small crater's back wall holds too few returns for Stage 1, while its shadow and
-            rim still show in the voxel grid. Such a placement must pass ``min_score`` and the
-            shadow test below. Off by default: the placements it recovers sit 0.2-0.6 m
-            toward the sensor and widen the 3-sigma error of far 5 m craters (BENCHMARKS.md).
+        prior_search_m: every map crater is also searched for around its prior center, on a
+            grid of this half-width (m; 0 disables). Far away a small crater's back wall holds
+            too few returns for Stage 1 while its shadow and rim still show in the voxel grid,
+            and a neighbouring wall's Stage-2 estimate can claim a map crater and place it
+            metres off. A prior-search placement must pass ``min_score`` and the shadow test
+            below, and its center must not lie inside a larger detected crater (whose shadow
+            would explain its own); it replaces the Stage-3 placement when it scores higher
+            (BENCHMARKS.md,
+            issue 6: on development renders it raised Pd for 5-20 m craters and narrowed
+            most diameters' 3-sigma error).
         min_shadow_contrast, min_shadow_expected: a prior-search placement is kept when its
             shadow columns are emptier than the same ranges beside the crater
             (:func:`shadow_contrast` at least this) over at least this many occupied twin
@@ -94,7 +102,7 @@ class LidarConfig:
     rim_search_m: float = 1.0
     height_tol_m: float = 0.15
     min_score: float = -0.3
-    prior_search_m: float = 0.0
+    prior_search_m: float = 2.5
     min_shadow_contrast: float = 0.6
     min_shadow_expected: int = 10
 
@@ -327,7 +335,8 @@ def match_to_map(
     cfg: LidarConfig,
 ) -> list[LidarDetection]:
     """Stage 3: for each estimate, the best-scoring placement of the map craters of similar
-    diameter; one detection per map crater (its best estimate), best score first."""
+    diameter, then (``prior_search_m`` > 0) each map crater's placement around its prior
+    center where it scores higher; one detection per map crater, best score first."""
     best: dict[int, LidarDetection] = {}
     for est in estimates:
         for k, mc in enumerate(map_craters):
@@ -340,10 +349,20 @@ def match_to_map(
             best[k] = LidarDetection(scene.frame.from_ground(center[None])[0], mc.diameter_m,
                                      score, k, stage2, est.diameter_m)
     if cfg.prior_search_m > 0:
-        for k, mc in enumerate(map_craters):
-            if k not in best and (det := _search_at_prior(scene, mc, k, cfg)) is not None:
+        found = {k: _search_at_prior(scene, mc, k, cfg) for k, mc in enumerate(map_craters)}
+        for k, det in found.items():
+            if (det is not None and (k not in best or det.score > best[k].score)
+                    and not _inside_another(det, k, best)):
                 best[k] = det
     return sorted(best.values(), key=lambda d: -d.score)
+
+
+def _inside_another(det: LidarDetection, k: int, best: dict[int, LidarDetection]) -> bool:
+    """The prior-search placement's center lies within the rim of another map crater's
+    detection: that crater's shadow explains the empty columns the placement was kept for."""
+    return any(j != k and other.diameter_m > det.diameter_m
+               and np.hypot(*(det.center_m[:2] - other.center_m[:2])) < 0.5 * other.diameter_m
+               for j, other in best.items())
 
 
 def _search_at_prior(scene: _Scene, mc: MapCrater, k: int,

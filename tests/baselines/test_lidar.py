@@ -42,7 +42,8 @@ def test_stage2_front_rim_back_rim_diameter(scene):
 
 def test_stage3_model_matching_refines_the_center(crater_scan):
     prior = L.MapCrater((CENTER[0] + 1.0, CENTER[1] - 1.0), CRATER_D, DEPTH, PROFILE.rim_height_m)
-    decoy = L.MapCrater((CENTER[0], CENTER[1]), 3.0, 0.6)  # wrong diameter: never a candidate
+    # wrong diameter: never a candidate; inside the real crater, so its prior search is dropped
+    decoy = L.MapCrater((CENTER[0], CENTER[1]), 3.0, 0.6)
     dets = L.detect_craters_lidar(crater_scan, map_craters=[decoy, prior])
     assert len(dets) == 1 and dets[0].map_index == 1
     assert np.hypot(*(dets[0].center_m[:2] - CENTER)) < 0.2
@@ -60,10 +61,25 @@ def test_model_score_peaks_at_the_truth(scene):
 
 def test_prior_search_finds_the_crater_stage1_misses(crater_scan):
     prior = L.MapCrater((CENTER[0] + 1.0, CENTER[1] - 1.0), CRATER_D, DEPTH, PROFILE.rim_height_m)
-    blind = L.LidarConfig(min_cluster_points=10**6)  # Stage 1 finds no back wall at all
+    # Stage 1 finds no back wall at all
+    blind = L.LidarConfig(min_cluster_points=10**6, prior_search_m=0.0)
     assert L.detect_craters_lidar(crater_scan, map_craters=[prior], config=blind) == []
-    cfg = L.LidarConfig(min_cluster_points=10**6, prior_search_m=2.5)
+    cfg = L.LidarConfig(min_cluster_points=10**6)  # the default prior search
     dets = L.detect_craters_lidar(crater_scan, map_craters=[prior], config=cfg)
+    assert len(dets) == 1 and np.hypot(*(dets[0].center_m[:2] - CENTER)) < 0.3
+    assert np.isnan(dets[0].stage2_diameter_m)
+
+
+def test_prior_search_replaces_the_placement_of_a_wrong_estimate(scene):
+    """A neighbour's Stage-2 estimate 6 m to the side claims the map crater: without the prior
+    search the crater is placed there or not at all; with it, at the truth."""
+    prior = L.MapCrater((CENTER[0] + 1.0, CENTER[1] - 1.0), CRATER_D, DEPTH, PROFILE.rim_height_m)
+    beside = np.array([CENTER[0], CENTER[1] + 6.0, 0.0])
+    wall = L.BackWall(beside[None], np.array([[0.0, 0.0, 1.0]]), beside)
+    wrong = L.CraterEstimate(wall, beside, beside, beside, CRATER_D)
+    off = L.match_to_map(scene, [wrong], [prior], L.LidarConfig(prior_search_m=0.0))
+    assert all(np.hypot(*(d.center_m[:2] - CENTER)) > 2.0 for d in off)
+    dets = L.match_to_map(scene, [wrong], [prior], L.LidarConfig())
     assert len(dets) == 1 and np.hypot(*(dets[0].center_m[:2] - CENTER)) < 0.3
     assert np.isnan(dets[0].stage2_diameter_m)
 
@@ -71,7 +87,7 @@ def test_prior_search_finds_the_crater_stage1_misses(crater_scan):
 def test_prior_search_rejects_open_ground(flat_scan, crater_scan):
     """On a flat scan the best placement still finds a fair score between the rings; the
     shadow contrast (its shadow is no emptier than the same ranges beside it) rejects it."""
-    cfg = L.LidarConfig(prior_search_m=2.5)
+    cfg = L.LidarConfig()
     mc = L.MapCrater(tuple(CENTER), CRATER_D, DEPTH)
     scene = L.prepare_scene(flat_scan, SENSOR, cfg)
     center, score = L.fit_model(scene, CENTER, mc, cfg, half_width_m=2.5)
