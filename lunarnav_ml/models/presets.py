@@ -63,7 +63,8 @@ PRESETS: dict[str, Preset] = {
     "small": Preset(depth=0.33, width=0.375, backbone_act="leaky", scale_xy=(2.0, 2.0, 2.0)),
     # small-relu is small with ReLU throughout, the onboard preset: onnxruntime folds a ReLU
     # into the integer convolution before it, where a leaky ReLU stays a separate quantized
-    # operator, so its int8 model runs 2.6x faster than fp32 against 2.4x (BENCHMARKS.md).
+    # operator, so its int8 model runs 2.6x faster than fp32 against 2.4x on a Zen 4 core (2.0-2.1x
+    # on a Xeon with AMX, whose fp32 is faster; BENCHMARKS.md).
     "small-relu": Preset(depth=0.33, width=0.375, backbone_act="relu", neck_act="relu",
                          scale_xy=(2.0, 2.0, 2.0)),
     "medium": Preset(depth=0.67, width=0.75),
