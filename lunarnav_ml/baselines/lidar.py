@@ -11,10 +11,10 @@ Stage 3  with the orbital-map prior: for each detection, the map craters of simi
          (and near the prior position); a parametric model of each (diameter, depth) sampled in
          points is placed on a 2D grid around the estimate and scored against the voxelized
          cloud with the paper's four rules; the best placement of the best map crater wins.
-         Each map crater is also placed on a grid around its prior center (``prior_search_m``,
-         kept when its shadow is emptier than open ground at the same range), and the better
-         scoring of the two placements is kept: an addition to the paper, which starts only
-         from detections.
+         Each map crater is also placed on a grid around its prior center (``prior_search_m``:
+         kept when its shadow is emptier than open ground at the same range and its center is
+         not inside a larger detected crater), and the better scoring of the two placements is
+         kept: an addition to the paper, which starts only from detections.
 
 All stages work in the gravity-aligned ground frame (plane z = 0, sensor at (0, 0, h)); results
 are returned in the frame of the input points.
@@ -69,9 +69,8 @@ class LidarConfig:
             metres off. A prior-search placement must pass ``min_score`` and the shadow test
             below, and its center must not lie inside a larger detected crater (whose shadow
             would explain its own); it replaces the Stage-3 placement when it scores higher
-            (BENCHMARKS.md,
-            issue 6: on development renders it raised Pd for 5-20 m craters and narrowed
-            most diameters' 3-sigma error).
+            (BENCHMARKS.md, issue 6: on development renders it raised Pd for 5-20 m craters
+            and narrowed most diameters' 3-sigma error).
         min_shadow_contrast, min_shadow_expected: a prior-search placement is kept when its
             shadow columns are emptier than the same ranges beside the crater
             (:func:`shadow_contrast` at least this) over at least this many occupied twin
@@ -349,8 +348,8 @@ def match_to_map(
             best[k] = LidarDetection(scene.frame.from_ground(center[None])[0], mc.diameter_m,
                                      score, k, stage2, est.diameter_m)
     if cfg.prior_search_m > 0:
-        found = {k: _search_at_prior(scene, mc, k, cfg) for k, mc in enumerate(map_craters)}
-        for k, det in found.items():
+        for k, mc in enumerate(map_craters):
+            det = _search_at_prior(scene, mc, k, cfg)
             if (det is not None and (k not in best or det.score > best[k].score)
                     and not _inside_another(det, k, best)):
                 best[k] = det
