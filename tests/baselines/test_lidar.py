@@ -5,6 +5,8 @@ import numpy as np
 import pytest
 
 from lunarnav_ml.baselines import lidar as L
+from lunarnav_ml.baselines.analytic import AnalyticScene, CraterSpec, simulate_lidar
+from lunarnav_ml.baselines.crater_model import CraterProfile
 from lunarnav_ml.errors import InputError
 from tests.baselines.conftest import CRATER_D, CRATER_XY, PROFILE
 
@@ -55,7 +57,7 @@ def test_model_score_peaks_at_the_truth(scene):
     cfg = L.LidarConfig()
     model = L.ModelPoints.build(PROFILE, 0.2, CENTER, scene.sensor_h)
     offsets = np.array([[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0]]) + CENTER
-    scores = L.score_placements(scene, model, offsets, 0.0, cfg)
+    scores = L.score_placements(scene, model, offsets, np.zeros(3), cfg)
     assert np.argmax(scores) == 0 and scores[0] > scores[1:].max() + 0.01
 
 
@@ -99,6 +101,29 @@ def test_prior_search_rejects_open_ground(flat_scan, crater_scan):
     crater = L.prepare_scene(crater_scan, SENSOR, cfg)
     model = L.ModelPoints.build(L.map_profile(mc), 0.2, CENTER, crater.sensor_h)
     assert L.shadow_contrast(crater, model, CENTER, CRATER_D)[0] > 0.9
+
+
+def test_tilted_local_ground_on_a_slope():
+    """A 5 m crater on the inner wall of a wide shallow crater, where the ground rises away
+    from the sensor by 0.116 m/m: the fitted plane recovers the slope, and the model placed
+    on it lands nearer the truth (and scores better) than on a level ground."""
+    wide = CraterProfile(40.0, 1.0, 0.3)
+    small = CraterProfile(5.0, 0.8, 0.2)
+    at = np.array([14.0, 0.0])
+    slope = AnalyticScene([CraterSpec((-2.0, 0.0), wide), CraterSpec(tuple(at), small)])
+    scene = L.prepare_scene(simulate_lidar(slope, range_noise_m=0.01, rng=3), SENSOR,
+                            L.LidarConfig())
+    truth = scene.frame.to_ground(np.array([[*at, 0.0]]))[0][:2]
+    mc = L.MapCrater(tuple(at), 5.0, 1.0, 0.2)
+    ground = L.local_ground(scene, L.map_profile(mc), truth, tilt=True)
+    assert ground[1] == pytest.approx(0.116, abs=0.01) and abs(ground[2]) < 0.01
+    assert np.all(L.local_ground(scene, L.map_profile(mc), truth)[1:] == 0.0)
+    start = truth + np.array([0.8, -0.6])
+    fits = {tilt: L.fit_model(scene, start, mc, L.LidarConfig(tilted_ground=tilt),
+                              half_width_m=2.5) for tilt in (False, True)}
+    err = {tilt: np.hypot(*(c[:2] - truth)) for tilt, (c, _) in fits.items()}
+    assert err[True] < 0.25 and err[False] > 0.35
+    assert fits[True][1] > fits[False][1] + 0.05
 
 
 def test_map_crater_far_from_prior_is_not_tried(crater_scan):
