@@ -42,6 +42,12 @@ class LidarConfig:
     Attributes:
         roi_m: horizontal radius around the sensor that is processed, m.
         plane_tol_m: RANSAC inlier distance of the ground-plane fit, m.
+        max_ground_tilt_deg: ground-plane hypotheses leaning farther than this from the input
+            frame's z are not tried (None: any). Where the rover stands in a hollow, a steep
+            wall near the sensor can hold more returns than any stretch of ground.
+        min_ground_fraction: a scan whose ground plane holds fewer of its points (within
+            ``plane_tol_m``) is not processed. Rough scans of the development renders hold
+            0.14-0.25 of their points within 5 cm of the best plane.
         downsample_m: voxel edge of the downsampling before normals, m.
         normal_k: neighbours per normal patch.
         min_slope_deg: a normal "faces the sensor" when the surface tilts toward it by more.
@@ -84,6 +90,8 @@ class LidarConfig:
 
     roi_m: float = 45.0
     plane_tol_m: float = 0.05
+    max_ground_tilt_deg: float | None = 30.0
+    min_ground_fraction: float = 0.1
     downsample_m: float = 0.15
     normal_k: int = 12
     min_slope_deg: float = 12.0
@@ -238,8 +246,12 @@ def prepare_scene(pts: np.ndarray, sensor: np.ndarray, cfg: LidarConfig) -> _Sce
     pts = pts[near]
     if len(pts) < 50:
         return None
-    normal, offset, inliers = pc.fit_plane_ransac(pts, inlier_tol_m=cfg.plane_tol_m)
-    if inliers.mean() < 0.2:
+    try:
+        normal, offset, inliers = pc.fit_plane_ransac(
+            pts, inlier_tol_m=cfg.plane_tol_m, max_tilt_deg=cfg.max_ground_tilt_deg)
+    except InputError:  # no level-enough plane among the hypotheses
+        return None
+    if inliers.mean() < cfg.min_ground_fraction:
         return None
     frame = pc.ground_frame(normal, offset, sensor)
     ground = pc.voxel_downsample(frame.to_ground(pts), cfg.downsample_m)

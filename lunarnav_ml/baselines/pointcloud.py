@@ -33,7 +33,8 @@ def finite_cloud(name: str, points: object) -> np.ndarray:
 
 
 def fit_plane_ransac(
-    points: np.ndarray, *, inlier_tol_m: float = 0.05, iterations: int = 200, seed: int = 0
+    points: np.ndarray, *, inlier_tol_m: float = 0.05, iterations: int = 200, seed: int = 0,
+    max_tilt_deg: float | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Dominant plane n . p + c = 0 by RANSAC, refined by least squares on the inliers.
 
@@ -42,6 +43,9 @@ def fit_plane_ransac(
         inlier_tol_m: point-to-plane distance counted as inlier, m.
         iterations: RANSAC hypotheses.
         seed: sampling seed (the same seed gives the same plane).
+        max_tilt_deg: hypotheses whose normal leans farther than this from +z are dropped
+            (None: any plane); the refined plane keeps the best hypothesis when it would lean
+            farther.
 
     Returns:
         unit normal n with n_z >= 0, offset c (m), inlier mask.
@@ -63,11 +67,18 @@ def fit_plane_ransac(
         raise InputError("points: degenerate cloud (collinear), no plane")
     normals = normals[ok] / norms[ok, None]
     offsets = -np.einsum("ij,ij->i", normals, tri[ok, 0])
+    if max_tilt_deg is not None:
+        upright = np.abs(normals[:, 2]) >= np.cos(np.radians(max_tilt_deg))
+        if not upright.any():
+            raise InputError(f"points: no plane within {max_tilt_deg} deg of level")
+        normals, offsets = normals[upright], offsets[upright]
     sub = points[rng.integers(0, len(points), min(len(points), 4000))]
     counts = (np.abs(sub @ normals.T + offsets) < inlier_tol_m).sum(axis=0)
     best = int(np.argmax(counts))
     inliers = np.abs(points @ normals[best] + offsets[best]) < inlier_tol_m
     n, c = _lsq_plane(points[inliers]) if inliers.sum() >= 3 else (normals[best], offsets[best])
+    if max_tilt_deg is not None and abs(n[2]) < np.cos(np.radians(max_tilt_deg)):
+        n, c = normals[best], offsets[best]
     if n[2] < 0:
         n, c = -n, -c
     return n, float(c), np.abs(points @ n + c) < inlier_tol_m

@@ -33,6 +33,23 @@ def test_ransac_plane_with_outliers():
         pc.fit_plane_ransac(np.zeros((2, 3)))
 
 
+def test_ransac_plane_tilt_cap_keeps_the_ground_under_a_steep_wall():
+    """A 60 deg wall with more points than the rough ground: uncapped RANSAC takes the wall;
+    with the cap it takes the ground; no plane within the cap raises."""
+    rng = np.random.default_rng(2)
+    ground = _plane_cloud(n=1500, slope=(0.0, 0.0))
+    ground[:, 2] += rng.normal(0, 0.02, len(ground))
+    u, v = rng.uniform(0, 6, 3000), rng.uniform(-5, 5, 3000)
+    wall = np.column_stack([12 + u * np.cos(np.radians(60)), v, u * np.sin(np.radians(60))])
+    cloud = np.vstack([ground, wall])
+    n_free, _, _ = pc.fit_plane_ransac(cloud)
+    assert n_free[2] < 0.6
+    n, _, inl = pc.fit_plane_ransac(cloud, max_tilt_deg=30.0)
+    assert n[2] > 0.999 and inl[:1500].mean() > 0.9
+    with pytest.raises(InputError, match="within 30"):
+        pc.fit_plane_ransac(wall, max_tilt_deg=30.0)
+
+
 def test_ground_frame_levels_the_plane_and_round_trips():
     pts = _plane_cloud()
     n, c, _ = pc.fit_plane_ransac(pts)
