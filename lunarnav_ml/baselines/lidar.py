@@ -61,6 +61,10 @@ class LidarConfig:
         diameter_tol: map craters within this relative diameter difference are candidates.
         prior_radius_m: map craters whose prior center is farther than this from the estimate
             are not tried, m (None: any distance).
+        max_prior_offset_m: a Stage-3 placement whose center lands farther than this from the
+            map crater's prior center is dropped, m (None: kept). 4 m is four standard
+            deviations of the 1 m rover-position error of the protocol's priors; without it a
+            neighbouring crater of similar size 4-6 m away could win the map crater.
         voxel_m: voxel edge of the grid the model is scored against, m.
         search_frac, search_min_m: half-width of the placement grid: max(min, frac D), m.
         rim_tol_m, rim_search_m: rim points with a voxel within tol are fine; none within
@@ -106,6 +110,7 @@ class LidarConfig:
     max_diameter_m: float = 40.0
     diameter_tol: float = 0.4
     prior_radius_m: float | None = 8.0
+    max_prior_offset_m: float | None = 4.0
     voxel_m: float = 0.1
     search_frac: float = 0.25
     search_min_m: float = 1.5
@@ -361,6 +366,9 @@ def match_to_map(
             center, score = fit_model(scene, est.center[:2], mc, cfg)
             if score < cfg.min_score or (k in best and best[k].score >= score):
                 continue
+            if (cfg.max_prior_offset_m is not None
+                    and np.hypot(*(center[:2] - _prior_xy(scene, mc))) > cfg.max_prior_offset_m):
+                continue
             stage2 = scene.frame.from_ground(est.center[None])[0]
             best[k] = LidarDetection(scene.frame.from_ground(center[None])[0], mc.diameter_m,
                                      score, k, stage2, est.diameter_m)
@@ -385,10 +393,10 @@ def _search_at_prior(scene: _Scene, mc: MapCrater, k: int,
                      cfg: LidarConfig) -> LidarDetection | None:
     """Place map crater ``k`` around its prior center (None: outside the processed region or
     scoring below ``min_score``)."""
-    prior = scene.frame.to_ground(np.array([[mc.center_xy[0], mc.center_xy[1], 0.0]]))[0]
-    if np.hypot(*prior[:2]) + 0.5 * mc.diameter_m > cfg.roi_m:
+    prior = _prior_xy(scene, mc)
+    if np.hypot(*prior) + 0.5 * mc.diameter_m > cfg.roi_m:
         return None
-    center, score = fit_model(scene, prior[:2], mc, cfg, half_width_m=cfg.prior_search_m)
+    center, score = fit_model(scene, prior, mc, cfg, half_width_m=cfg.prior_search_m)
     if score < cfg.min_score:
         return None
     model = map_model(mc, center[:2], scene.sensor_h)
@@ -438,8 +446,12 @@ def _is_candidate(scene: _Scene, est: CraterEstimate, mc: MapCrater, cfg: LidarC
         return False
     if cfg.prior_radius_m is None:
         return True
-    prior = scene.frame.to_ground(np.array([[mc.center_xy[0], mc.center_xy[1], 0.0]]))[0]
-    return float(np.hypot(*(prior[:2] - est.center[:2]))) <= cfg.prior_radius_m
+    return float(np.hypot(*(_prior_xy(scene, mc) - est.center[:2]))) <= cfg.prior_radius_m
+
+
+def _prior_xy(scene: _Scene, mc: MapCrater) -> np.ndarray:
+    """The map crater's prior center in the ground frame, m."""
+    return scene.frame.to_ground(np.array([[mc.center_xy[0], mc.center_xy[1], 0.0]]))[0, :2]
 
 
 def fit_model(

@@ -79,8 +79,11 @@ def test_prior_search_replaces_the_placement_of_a_wrong_estimate(scene):
     beside = np.array([CENTER[0], CENTER[1] + 6.0, 0.0])
     wall = L.BackWall(beside[None], np.array([[0.0, 0.0, 1.0]]), beside)
     wrong = L.CraterEstimate(wall, beside, beside, beside, CRATER_D)
-    off = L.match_to_map(scene, [wrong], [prior], L.LidarConfig(prior_search_m=0.0))
-    assert all(np.hypot(*(d.center_m[:2] - CENTER)) > 2.0 for d in off)
+    loose = L.LidarConfig(prior_search_m=0.0, max_prior_offset_m=None)
+    off = L.match_to_map(scene, [wrong], [prior], loose)
+    assert len(off) == 1 and np.hypot(*(off[0].center_m[:2] - CENTER)) > 2.0
+    # the placement lands over 4 m from the prior: dropped
+    assert L.match_to_map(scene, [wrong], [prior], L.LidarConfig(prior_search_m=0.0)) == []
     dets = L.match_to_map(scene, [wrong], [prior], L.LidarConfig())
     assert len(dets) == 1 and np.hypot(*(dets[0].center_m[:2] - CENTER)) < 0.3
     assert np.isnan(dets[0].stage2_diameter_m)
