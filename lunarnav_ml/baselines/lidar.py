@@ -68,7 +68,8 @@ class LidarConfig:
         voxel_m: voxel edge of the grid the model is scored against, m.
         search_frac, search_min_m: half-width of the placement grid: max(min, frac D), m.
         rim_tol_m, rim_search_m: rim points with a voxel within tol are fine; none within
-            search costs a full point, m.
+            search costs a full point, m (tol 0.1 m, one voxel: chosen on development renders
+            over 0.05 and 0.15 m, BENCHMARKS.md issue 6).
         height_tol_m: a voxel this far above a model point is "higher than the point", m.
         min_score: placements scoring below this (mean per model point, 0 = perfect, -1 = every
             point penalized) are rejected.
@@ -114,7 +115,7 @@ class LidarConfig:
     voxel_m: float = 0.1
     search_frac: float = 0.25
     search_min_m: float = 1.5
-    rim_tol_m: float = 0.15
+    rim_tol_m: float = 0.1
     rim_search_m: float = 1.0
     height_tol_m: float = 0.15
     min_score: float = -0.3
