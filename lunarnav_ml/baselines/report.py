@@ -75,7 +75,8 @@ def baseline_report(
         max_images: evaluate only the first n images (None: all).
         seed: seed of the prior offsets and disparity noise.
         progress: tqdm bar on stderr.
-        lidar_config, stereo_config: detector settings.
+        lidar_config, stereo_config: detector settings (lidar default: ``LidarConfig`` with
+            ``max_prior_offset_m`` = 4 ``prior_sigma_m``).
 
     Returns:
         the metrics dict written to ``metrics.json``.
@@ -92,7 +93,8 @@ def baseline_report(
     images = gt["images"][:max_images] if max_images is not None else gt["images"]
     craters = _craters_by_image(gt)
     if method == "lidar":
-        cfg = lidar_config or LidarConfig()
+        # placements farther than four prior standard deviations from the prior are dropped
+        cfg = lidar_config or LidarConfig(max_prior_offset_m=4.0 * prior_sigma_m)
         run: Callable = lambda img, crs, rng: _run_lidar(
             ann_path.parent, img, crs, rng, cfg, prior_sigma_m, map_min_diameter_m)
     else:

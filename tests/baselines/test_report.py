@@ -53,3 +53,22 @@ def test_lidar_target_hidden_without_returns_on_its_far_half(tmp_path):
     assert not _visible(tmp_path, img, target, "lidar")
     assert _visible(tmp_path, img, target, "stereo")
     assert not _visible(tmp_path, img, {**target, "ignore_reasons": ["occluded"]}, "stereo")
+
+
+def test_lidar_prior_offset_limit_follows_the_prior_sigma(tmp_path, monkeypatch):
+    """Without a lidar_config the placement limit is four prior standard deviations."""
+    import json
+
+    from lunarnav_ml.baselines import report
+
+    (tmp_path / "annotations.json").write_text(
+        json.dumps({"images": [{**_img(), "lidar_file": "x.npz"}], "annotations": []}))
+    seen = []
+    monkeypatch.setattr(report, "_run_lidar", lambda root, img, crs, rng, cfg, *a: (
+        seen.append(cfg.max_prior_offset_m), ([], 0.0))[1])
+    monkeypatch.setattr(report, "_visible", lambda *a: True)
+    for sigma in (1.0, 2.5):
+        m = report.baseline_report(tmp_path, tmp_path / "out", prior_sigma_m=sigma,
+                                   progress=False)
+        assert m["pd_all"] == 0.0
+    assert seen == [4.0, 10.0]
