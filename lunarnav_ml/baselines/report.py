@@ -76,7 +76,7 @@ def baseline_report(
         seed: seed of the prior offsets and disparity noise.
         progress: tqdm bar on stderr.
         lidar_config, stereo_config: detector settings (lidar default: ``LidarConfig`` with
-            ``max_prior_offset_m`` = 4 ``prior_sigma_m``).
+            ``max_prior_offset_m`` = max(4 ``prior_sigma_m``, 1 m)).
 
     Returns:
         the metrics dict written to ``metrics.json``.
@@ -86,6 +86,8 @@ def baseline_report(
     """
     if method not in METHODS:
         raise InputError(f"method: expected one of {METHODS}, got {method!r}")
+    if not (np.isfinite(prior_sigma_m) and prior_sigma_m >= 0):
+        raise InputError(f"prior_sigma_m: must be >= 0 and finite, got {prior_sigma_m}")
     if disparity not in DISPARITY_SOURCES:
         raise InputError(f"disparity: expected one of {DISPARITY_SOURCES}, got {disparity!r}")
     ann_path = _annotations_path(Path(dataset_dir))
@@ -93,8 +95,9 @@ def baseline_report(
     images = gt["images"][:max_images] if max_images is not None else gt["images"]
     craters = _craters_by_image(gt)
     if method == "lidar":
-        # placements farther than four prior standard deviations from the prior are dropped
-        cfg = lidar_config or LidarConfig(max_prior_offset_m=4.0 * prior_sigma_m)
+        # placements farther than four prior standard deviations (at least 1 m: a placement's
+        # own error) from the prior are dropped
+        cfg = lidar_config or LidarConfig(max_prior_offset_m=max(4.0 * prior_sigma_m, 1.0))
         run: Callable = lambda img, crs, rng: _run_lidar(
             ann_path.parent, img, crs, rng, cfg, prior_sigma_m, map_min_diameter_m)
     else:

@@ -115,7 +115,7 @@ def run_baselines(args: argparse.Namespace) -> int:
 
     method = args.task.split("-", 1)[1]
     metrics = baseline_report(Path(args.test_gt), args.out, method=method,
-                              progress=not args.no_progress)
+                              prior_sigma_m=args.prior_sigma, progress=not args.no_progress)
     print(json.dumps(metrics.get("summary", metrics), indent=1, default=str)[:2000])
     print(f"-> {args.out}")
     return 0
@@ -195,6 +195,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--disparity", choices=("sgbm", "rendered"), default="sgbm",
                    help="(geometry) SGBM on the pair, or the dataset's rendered disparity "
                         "(isolates the lifter)")
+    p.add_argument("--prior-sigma", type=float, default=1.0,
+                   help="(baselines-lidar) map-prior position error per axis, m: each map "
+                        "crater's prior center is offset by N(0, sigma); placements farther "
+                        "than max(4 sigma, 1 m) from it are dropped")
     p.add_argument("--out", type=Path, default=Path("outputs/eval"))
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_dispatch)

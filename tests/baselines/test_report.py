@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from lunarnav_ml.baselines.report import _targets, match_detections, with_protocol_target
+from lunarnav_ml.errors import InputError
 
 CAMERA = {"height_m": 1.5, "pitch_deg": 20.0, "roll_deg": 0.0}
 
@@ -56,7 +57,8 @@ def test_lidar_target_hidden_without_returns_on_its_far_half(tmp_path):
 
 
 def test_lidar_prior_offset_limit_follows_the_prior_sigma(tmp_path, monkeypatch):
-    """Without a lidar_config the placement limit is four prior standard deviations."""
+    """Without a lidar_config the placement limit is four prior standard deviations (at
+    least 1 m); a NaN sigma is refused."""
     import json
 
     from lunarnav_ml.baselines import report
@@ -67,8 +69,10 @@ def test_lidar_prior_offset_limit_follows_the_prior_sigma(tmp_path, monkeypatch)
     monkeypatch.setattr(report, "_run_lidar", lambda root, img, crs, rng, cfg, *a: (
         seen.append(cfg.max_prior_offset_m), ([], 0.0))[1])
     monkeypatch.setattr(report, "_visible", lambda *a: True)
-    for sigma in (1.0, 2.5):
+    for sigma in (1.0, 2.5, 0.1):
         m = report.baseline_report(tmp_path, tmp_path / "out", prior_sigma_m=sigma,
                                    progress=False)
         assert m["pd_all"] == 0.0
-    assert seen == [4.0, 10.0]
+    assert seen == [4.0, 10.0, 1.0]
+    with pytest.raises(InputError, match="prior_sigma_m"):
+        report.baseline_report(tmp_path, tmp_path / "out", prior_sigma_m=float("nan"))
