@@ -363,22 +363,26 @@ def match_to_map(
     diameter, then (``prior_search_m`` > 0) each map crater's placement around its prior
     center where it scores higher; one detection per map crater, best score first."""
     best: dict[int, LidarDetection] = {}
+    if not map_craters:
+        return []
+    # prior centers in the ground frame (m), once
+    priors = scene.frame.to_ground(np.array([[*mc.center_xy, 0.0] for mc in map_craters]))[:, :2]
     for est in estimates:
         for k, mc in enumerate(map_craters):
-            if not _is_candidate(scene, est, mc, cfg):
+            if not _is_candidate(est, mc, priors[k], cfg):
                 continue
             center, score = fit_model(scene, est.center[:2], mc, cfg)
             if score < cfg.min_score or (k in best and best[k].score >= score):
                 continue
             if (cfg.max_prior_offset_m is not None
-                    and np.hypot(*(center[:2] - _prior_xy(scene, mc))) > cfg.max_prior_offset_m):
+                    and np.hypot(*(center[:2] - priors[k])) > cfg.max_prior_offset_m):
                 continue
             stage2 = scene.frame.from_ground(est.center[None])[0]
             best[k] = LidarDetection(scene.frame.from_ground(center[None])[0], mc.diameter_m,
                                      score, k, stage2, est.diameter_m)
     if cfg.prior_search_m > 0:
         for k, mc in enumerate(map_craters):
-            det = _search_at_prior(scene, mc, k, cfg)
+            det = _search_at_prior(scene, mc, k, priors[k], cfg)
             if (det is not None and (k not in best or det.score > best[k].score)
                     and not _inside_another(det, k, best)):
                 best[k] = det
@@ -393,11 +397,10 @@ def _inside_another(det: LidarDetection, k: int, best: dict[int, LidarDetection]
                for j, other in best.items())
 
 
-def _search_at_prior(scene: _Scene, mc: MapCrater, k: int,
+def _search_at_prior(scene: _Scene, mc: MapCrater, k: int, prior: np.ndarray,
                      cfg: LidarConfig) -> LidarDetection | None:
-    """Place map crater ``k`` around its prior center (None: outside the processed region or
-    scoring below ``min_score``)."""
-    prior = _prior_xy(scene, mc)
+    """Place map crater ``k`` around its prior center ``prior`` (ground frame, m) (None:
+    outside the processed region or scoring below ``min_score``)."""
     if np.hypot(*prior) + 0.5 * mc.diameter_m > cfg.roi_m:
         return None
     center, score = fit_model(scene, prior, mc, cfg, half_width_m=cfg.prior_search_m)
@@ -444,18 +447,15 @@ def shadow_contrast(scene: _Scene, model: ModelPoints, center_xy: np.ndarray,
     return float(1.0 - 2.0 * occupied / twins), int(twins)
 
 
-def _is_candidate(scene: _Scene, est: CraterEstimate, mc: MapCrater, cfg: LidarConfig) -> bool:
-    """Similar diameter and (with a prior radius) a prior center near the estimate."""
+def _is_candidate(est: CraterEstimate, mc: MapCrater, prior: np.ndarray,
+                  cfg: LidarConfig) -> bool:
+    """Similar diameter and (with a prior radius) the prior center ``prior`` (ground frame,
+    m) near the estimate."""
     if abs(est.diameter_m - mc.diameter_m) > cfg.diameter_tol * mc.diameter_m:
         return False
     if cfg.prior_radius_m is None:
         return True
-    return float(np.hypot(*(_prior_xy(scene, mc) - est.center[:2]))) <= cfg.prior_radius_m
-
-
-def _prior_xy(scene: _Scene, mc: MapCrater) -> np.ndarray:
-    """The map crater's prior center in the ground frame, m."""
-    return scene.frame.to_ground(np.array([[mc.center_xy[0], mc.center_xy[1], 0.0]]))[0, :2]
+    return float(np.hypot(*(prior - est.center[:2]))) <= cfg.prior_radius_m
 
 
 def fit_model(
@@ -484,8 +484,7 @@ def fit_model(
         offsets = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2) + center
         scores = score_placements(scene, model, offsets, ground, cfg)
         center, score = offsets[int(np.argmax(scores))], float(np.max(scores))
-    base = ground[0] + ground[1] * center[0] + ground[2] * center[1]
-    return np.array([center[0], center[1], base + float(profile.rim_height_m)]), score
+    return np.array([*center, plane_z(ground, center) + float(profile.rim_height_m)]), score
 
 
 def map_profile(mc: MapCrater) -> CraterProfile:
@@ -521,7 +520,7 @@ def local_ground(scene: _Scene, profile: CraterProfile, center_xy: np.ndarray,
         return np.zeros(3)
     level = np.array([float(np.median(resid[ok])), 0.0, 0.0])
     # a plane needs returns on more than one side: at least a quarter of the directions
-    if not tilt or len(np.unique(np.nonzero(ok.reshape(len(rr), -1))[1])) < len(ang) // 4:
+    if not tilt or ok.reshape(len(rr), -1).any(axis=0).sum() < len(ang) // 4:
         return level
     a = np.column_stack([np.ones(ok.sum()), offsets[ok]])  # about the center: well conditioned
     z = resid[ok]
@@ -532,6 +531,11 @@ def local_ground(scene: _Scene, profile: CraterProfile, center_xy: np.ndarray,
     if keep.sum() >= 8:
         coef = np.linalg.lstsq(a[keep], z[keep], rcond=None)[0]
     return np.array([coef[0] - coef[1:] @ center_xy, coef[1], coef[2]])
+
+
+def plane_z(ground: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Height of the plane ``ground`` = (a, b, c), z = a + b x + c y, at ``xy`` (..., 2), m."""
+    return ground[0] + xy[..., 0] * ground[1] + xy[..., 1] * ground[2]
 
 
 @dataclass
@@ -585,7 +589,7 @@ def score_placements(
     def place(part: np.ndarray) -> np.ndarray:
         # (P, M, 3): the model points at every center, lifted onto the ground plane
         pts = part[None] + np.concatenate([centers, np.zeros((len(centers), 1))], 1)[:, None]
-        pts[..., 2] += ground[0] + pts[..., 0] * ground[1] + pts[..., 1] * ground[2]
+        pts[..., 2] += plane_z(ground, pts[..., :2])
         return pts
 
     total = np.zeros(len(centers))

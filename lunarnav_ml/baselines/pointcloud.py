@@ -67,8 +67,9 @@ def fit_plane_ransac(
         raise InputError("points: degenerate cloud (collinear), no plane")
     normals = normals[ok] / norms[ok, None]
     offsets = -np.einsum("ij,ij->i", normals, tri[ok, 0])
+    min_nz = -1.0 if max_tilt_deg is None else np.cos(np.radians(max_tilt_deg))
     if max_tilt_deg is not None:
-        upright = np.abs(normals[:, 2]) >= np.cos(np.radians(max_tilt_deg))
+        upright = np.abs(normals[:, 2]) >= min_nz
         if not upright.any():
             raise InputError(f"points: no plane within {max_tilt_deg} deg of level")
         normals, offsets = normals[upright], offsets[upright]
@@ -77,7 +78,7 @@ def fit_plane_ransac(
     best = int(np.argmax(counts))
     inliers = np.abs(points @ normals[best] + offsets[best]) < inlier_tol_m
     n, c = _lsq_plane(points[inliers]) if inliers.sum() >= 3 else (normals[best], offsets[best])
-    if max_tilt_deg is not None and abs(n[2]) < np.cos(np.radians(max_tilt_deg)):
+    if abs(n[2]) < min_nz:
         n, c = normals[best], offsets[best]
     if n[2] < 0:
         n, c = -n, -c
