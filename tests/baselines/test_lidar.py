@@ -129,6 +129,36 @@ def test_tilted_local_ground_on_a_slope():
     assert fits[True][1] > fits[False][1] + 0.05
 
 
+def test_sight_height_over_the_local_plane_on_a_slope():
+    """Where the ground rises away from the sensor, the sight lines meet the crater's plane
+    more steeply than they meet the scan's ground plane: the model's line-of-sight classes
+    use the sensor's height over the local plane where it passes under the sensor, and the
+    placement lands nearer the truth and scores better than with the height over the scan's
+    ground plane."""
+    wide = CraterProfile(40.0, 1.0, 0.3)
+    small = CraterProfile(5.0, 0.8, 0.2)
+    at = np.array([16.0, 0.0])
+    slope = AnalyticScene([CraterSpec((-2.0, 0.0), wide), CraterSpec(tuple(at), small)])
+    scene = L.prepare_scene(simulate_lidar(slope, range_noise_m=0.01, rng=3), SENSOR,
+                            L.LidarConfig())
+    truth = scene.frame.to_ground(np.array([[*at, 0.0]]))[0][:2]
+    mc = L.MapCrater(tuple(at), 5.0, 1.0, 0.2)
+    ground = L.local_ground(scene, L.map_profile(mc), truth, tilt=True)
+    on, off = L.LidarConfig(), L.LidarConfig(plane_sight=False)
+    assert L.sight_height(scene, ground, off) == scene.sensor_h
+    # the plane rises ~0.13 m/m away from the sensor: it passes ~0.97 m under the sensor's foot
+    assert L.sight_height(scene, ground, on) == pytest.approx(scene.sensor_h - ground[0])
+    assert L.sight_height(scene, ground, on) > scene.sensor_h + 0.8
+    start = truth + np.array([0.8, -0.6])
+    fits = {c.plane_sight: L.fit_model(scene, start, mc, c, half_width_m=2.5) for c in (on, off)}
+    err = {k: np.hypot(*(c[:2] - truth)) for k, (c, _) in fits.items()}
+    assert err[True] < 0.2 and err[False] > 0.25
+    assert fits[True][1] > fits[False][1] + 0.02
+    # a plane above the sensor (a wall ahead) leaves the sight height at its floor, not <= 0
+    wall = np.array([scene.sensor_h + 5.0, 0.0, 0.0])
+    assert L.sight_height(scene, wall, on) == L.MIN_SIGHT_HEIGHT
+
+
 def test_map_crater_far_from_prior_is_not_tried(crater_scan):
     far = L.MapCrater((CENTER[0] + 20.0, CENTER[1]), CRATER_D, DEPTH)
     assert L.detect_craters_lidar(crater_scan, map_craters=[far]) == []
