@@ -12,8 +12,9 @@ Stage 3  with the orbital-map prior: for each detection, the map craters of simi
          points is placed on a 2D grid around the estimate and scored against the voxelized
          cloud with the paper's four rules; the best placement of the best map crater wins.
          The model sits on a plane fitted to the ground around it (the paper names only a 2D
-         grid of positions, which we read as level gravity-aligned ground), and
-         a placement landing over ``max_prior_offset_m`` from its prior is dropped.
+         grid of positions, which we read as level gravity-aligned ground), its sight lines
+         meet it at the angle they meet that plane (``plane_sight``), and a placement landing
+         over ``max_prior_offset_m`` from its prior is dropped.
          Each map crater is also placed on a grid around its prior center (``prior_search_m``:
          kept when its shadow is emptier than open ground at the same range and its center is
          not inside a larger detected crater), and the better scoring of the two placements is
