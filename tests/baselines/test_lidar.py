@@ -106,18 +106,24 @@ def test_prior_search_rejects_open_ground(flat_scan, crater_scan):
     assert L.shadow_contrast(crater, model, CENTER, CRATER_D)[0] > 0.9
 
 
+def _crater_on_a_slope(x_m: float) -> tuple:
+    """A 5 m crater at (x_m, 0) on the inner wall of a wide shallow crater around the sensor,
+    where the ground rises away from it (~0.12 m/m): the scene, the truth (ground frame) and
+    the map crater."""
+    wide = CraterProfile(40.0, 1.0, 0.3)
+    small = CraterProfile(5.0, 0.8, 0.2)
+    slope = AnalyticScene([CraterSpec((-2.0, 0.0), wide), CraterSpec((x_m, 0.0), small)])
+    scene = L.prepare_scene(simulate_lidar(slope, range_noise_m=0.01, rng=3), SENSOR,
+                            L.LidarConfig())
+    truth = scene.frame.to_ground(np.array([[x_m, 0.0, 0.0]]))[0][:2]
+    return scene, truth, L.MapCrater((x_m, 0.0), 5.0, 1.0, 0.2)
+
+
 def test_tilted_local_ground_on_a_slope():
     """A 5 m crater on the inner wall of a wide shallow crater, where the ground rises away
     from the sensor by 0.116 m/m: the fitted plane recovers the slope, and the model placed
     on it lands nearer the truth (and scores better) than on a level ground."""
-    wide = CraterProfile(40.0, 1.0, 0.3)
-    small = CraterProfile(5.0, 0.8, 0.2)
-    at = np.array([14.0, 0.0])
-    slope = AnalyticScene([CraterSpec((-2.0, 0.0), wide), CraterSpec(tuple(at), small)])
-    scene = L.prepare_scene(simulate_lidar(slope, range_noise_m=0.01, rng=3), SENSOR,
-                            L.LidarConfig())
-    truth = scene.frame.to_ground(np.array([[*at, 0.0]]))[0][:2]
-    mc = L.MapCrater(tuple(at), 5.0, 1.0, 0.2)
+    scene, truth, mc = _crater_on_a_slope(14.0)
     ground = L.local_ground(scene, L.map_profile(mc), truth, tilt=True)
     assert ground[1] == pytest.approx(0.116, abs=0.01) and abs(ground[2]) < 0.01
     assert np.all(L.local_ground(scene, L.map_profile(mc), truth)[1:] == 0.0)
@@ -135,14 +141,7 @@ def test_sight_height_over_the_local_plane_on_a_slope():
     use the sensor's height over the local plane where it passes under the sensor, and the
     placement lands nearer the truth and scores better than with the height over the scan's
     ground plane."""
-    wide = CraterProfile(40.0, 1.0, 0.3)
-    small = CraterProfile(5.0, 0.8, 0.2)
-    at = np.array([16.0, 0.0])
-    slope = AnalyticScene([CraterSpec((-2.0, 0.0), wide), CraterSpec(tuple(at), small)])
-    scene = L.prepare_scene(simulate_lidar(slope, range_noise_m=0.01, rng=3), SENSOR,
-                            L.LidarConfig())
-    truth = scene.frame.to_ground(np.array([[*at, 0.0]]))[0][:2]
-    mc = L.MapCrater(tuple(at), 5.0, 1.0, 0.2)
+    scene, truth, mc = _crater_on_a_slope(16.0)
     ground = L.local_ground(scene, L.map_profile(mc), truth, tilt=True)
     on, off = L.LidarConfig(), L.LidarConfig(plane_sight=False)
     assert L.sight_height(scene, ground, off) == scene.sensor_h
