@@ -546,10 +546,13 @@ def local_ground(scene: _Scene, profile: CraterProfile, center_xy: np.ndarray,
 
 
 def sight_height(scene: _Scene, ground: np.ndarray, cfg: LidarConfig) -> float:
-    """The sensor's height for the model's line-of-sight classes, m: over the ground plane
-    (``plane_sight`` off), or over the crater's local plane ``ground`` where it passes under the
-    sensor (on), so that the sight lines meet the model at the angle they meet that plane."""
-    if not cfg.plane_sight:
+    """The sensor's height for the model's line-of-sight classes, m: over the crater's local
+    plane ``ground`` where it passes under the sensor (``plane_sight``), so that the sight lines
+    meet the model at the angle they meet that plane. Over the scan's ground plane when
+    ``plane_sight`` is off or the local ground is level (too few returns around the crater to
+    fit its slope, or ``tilted_ground`` off): a crater's height alone, without the slope that
+    usually comes with it, gave worse placements on development renders."""
+    if not cfg.plane_sight or not np.any(ground[1:]):
         return scene.sensor_h
     return max(scene.sensor_h - float(ground[0]), MIN_SIGHT_HEIGHT)
 

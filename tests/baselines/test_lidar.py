@@ -154,8 +154,10 @@ def test_sight_height_over_the_local_plane_on_a_slope():
     assert err[True] < 0.2 and err[False] > 0.25
     assert fits[True][1] > fits[False][1] + 0.02
     # a plane above the sensor (a wall ahead) leaves the sight height at its floor, not <= 0
-    wall = np.array([scene.sensor_h + 5.0, 0.0, 0.0])
+    wall = np.array([scene.sensor_h + 5.0, -0.3, 0.0])
     assert L.sight_height(scene, wall, on) == L.MIN_SIGHT_HEIGHT
+    # a level local ground (no slope fitted) says nothing of the slope: the scan's ground plane
+    assert L.sight_height(scene, np.array([-0.5, 0.0, 0.0]), on) == scene.sensor_h
 
 
 def test_map_crater_far_from_prior_is_not_tried(crater_scan):
