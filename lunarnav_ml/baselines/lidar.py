@@ -416,8 +416,7 @@ def _search_at_prior(scene: _Scene, mc: MapCrater, k: int, prior: np.ndarray,
     center, score = fit_model(scene, prior, mc, cfg, half_width_m=cfg.prior_search_m)
     if score < cfg.min_score:
         return None
-    ground = local_ground(scene, map_profile(mc), center[:2], cfg.tilted_ground)
-    model = map_model(mc, center[:2], sight_height(scene, ground, cfg))
+    _, model = sighted_model(scene, mc, center[:2], cfg)
     contrast, expected = shadow_contrast(scene, model, center[:2], mc.diameter_m)
     if expected < cfg.min_shadow_expected or contrast < cfg.min_shadow_contrast:
         return None
@@ -486,8 +485,7 @@ def fit_model(
     """
     profile = map_profile(mc)
     center = np.asarray(center_xy, float)[:2]
-    ground = local_ground(scene, profile, center, cfg.tilted_ground)
-    model = map_model(mc, center, sight_height(scene, ground, cfg))
+    ground, model = sighted_model(scene, mc, center, cfg)
     half = (max(cfg.search_min_m, cfg.search_frac * mc.diameter_m) if half_width_m is None
             else half_width_m)
     step = max(0.2, mc.diameter_m / 40.0)
@@ -509,6 +507,14 @@ def map_model(mc: MapCrater, center_xy: np.ndarray, sensor_h: float) -> ModelPoi
     """The map crater's model sampled every D / 50 (at least 0.1 m), its points classified as
     seen from the sensor with the crater at ``center_xy`` (ground frame, m)."""
     return ModelPoints.build(map_profile(mc), max(0.1, mc.diameter_m / 50.0), center_xy, sensor_h)
+
+
+def sighted_model(scene: _Scene, mc: MapCrater, center_xy: np.ndarray,
+                  cfg: LidarConfig) -> tuple[np.ndarray, ModelPoints]:
+    """The local ground at ``center_xy`` (:func:`local_ground`, (a, b, c)) and the map
+    crater's model there, its sight lines set from that ground (:func:`sight_height`)."""
+    ground = local_ground(scene, map_profile(mc), center_xy, cfg.tilted_ground)
+    return ground, map_model(mc, center_xy, sight_height(scene, ground, cfg))
 
 
 def local_ground(scene: _Scene, profile: CraterProfile, center_xy: np.ndarray,
@@ -617,8 +623,8 @@ def score_placements(
         return pts
 
     total = np.zeros(len(centers))
-    if len(model.shadow):
-        tops = scene.columns.lookup(place(model.shadow)[..., :2])
+    if len(model.shadow):  # only their columns matter: no heights
+        tops = scene.columns.lookup(model.shadow[None, :, :2] + centers[:, None])
         total -= np.isfinite(tops).sum(axis=1)
     if len(model.rim):
         rim = place(model.rim).reshape(-1, 3)
