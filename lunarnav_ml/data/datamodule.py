@@ -45,16 +45,24 @@ class DetectionDataModule(L.LightningDataModule):
         augment: box-aware photometric/geometric augmentation of training samples.
         cache: keep decoded images in memory.
         num_classes: category ids 1..num_classes.
+        read_sizes: per training source, the long side its frames are read at before a
+            random ``img_size`` crop (:class:`CocoDetection` ``read_size``); None or a None
+            entry letterboxes that source's whole frames.
     """
 
     def __init__(self, train: str | list[str], val: str, weights: list[float] | None = None,
                  img_size: int = 320, batch_size: int = 16, num_workers: int = 0,
                  mosaic_prob: float = 0.0, augment: bool = True, cache: bool = True,
-                 num_classes: int = 3) -> None:
+                 num_classes: int = 3, read_sizes: list[int | None] | None = None) -> None:
         super().__init__()
         self.train_files = [train] if isinstance(train, (str, Path)) else list(train)
         if not self.train_files:
             raise ConfigError("data.train: give at least one annotations.json")
+        self.read_sizes = list(read_sizes) if read_sizes is not None else [None] * len(
+            self.train_files)
+        if len(self.read_sizes) != len(self.train_files):
+            raise ConfigError(f"data.read_sizes: {len(self.read_sizes)} entries for "
+                              f"{len(self.train_files)} training sources")
         self.val_file = val
         self.weights = weights
         self.img_size, self.batch_size, self.num_workers = img_size, batch_size, num_workers
@@ -66,8 +74,8 @@ class DetectionDataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if not self.train_sets:
             self.train_sets = [CocoDetection(f, self.img_size, self.augment, self.mosaic_prob,
-                                             self.cache, self.num_classes)
-                               for f in self.train_files]
+                                             self.cache, self.num_classes, read)
+                               for f, read in zip(self.train_files, self.read_sizes)]
         if self.val_set is None:
             self.val_set = CocoDetection(self.val_file, self.img_size, False, 0.0, self.cache,
                                          self.num_classes)
@@ -75,8 +83,8 @@ class DetectionDataModule(L.LightningDataModule):
     def kmeans_anchors(self, levels: int, per_level: int = 3, seed: int = 0) -> np.ndarray:
         """Anchors from k-means on all training boxes, :math:`(levels, per_level, 2)` px."""
         self.setup("fit")
-        records = [r for ds in self.train_sets for r in ds.records]
-        return anchors_for_levels(box_sizes(records, self.img_size), levels, per_level, seed)
+        sizes = np.concatenate([box_sizes(ds.records, ds.read_size) for ds in self.train_sets])
+        return anchors_for_levels(sizes, levels, per_level, seed)
 
     def train_dataloader(self) -> DataLoader:
         data = ConcatDataset(self.train_sets)

@@ -9,9 +9,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from lunarnav_ml.data.augment import Boxes, apply_augment, build_augment, clip_boxes, mosaic
+from lunarnav_ml.data.augment import (Boxes, apply_augment, build_augment, clip_boxes,
+                                      drop_small, mosaic)
 from lunarnav_ml.data.coco import ImageRecord, load_coco, read_image
-from lunarnav_ml.data.letterbox import letterbox, resize_long_side
+from lunarnav_ml.data.letterbox import PAD_VALUE, letterbox, resize_long_side
 from lunarnav_ml.errors import InputError
 
 Sample = tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, Any]]
@@ -27,6 +28,12 @@ class CocoDetection(Dataset):
         mosaic_prob: probability that a sample is a 4-image mosaic (training).
         cache: keep decoded, resized images in memory.
         num_classes: category ids must lie in 1..num_classes.
+        read_size: training only: frames are resized to this long side (instead of
+            ``img_size``) and a random ``img_size`` square is cropped from them, centred near a
+            random labelled box (:func:`crop_around_box`). The network then learns objects at
+            the scale of a frame read at ``read_size`` (e.g. far craters in full-resolution
+            1024 px frames) for the cost of an ``img_size`` input. None or ``img_size``:
+            the whole frame is letterboxed.
 
     Each item is ``(image, target, meta)``: image :math:`(3, S, S)` uint8 RGB; target
     ``{"boxes": (N, 4) float32 xyxy input px, "labels": (N,) int64 ids 1..K, "ignore": (N,)
@@ -34,12 +41,16 @@ class CocoDetection(Dataset):
     """
 
     def __init__(self, ann_file: str | Path, img_size: int = 320, augment: bool = False,
-                 mosaic_prob: float = 0.0, cache: bool = True, num_classes: int = 3) -> None:
+                 mosaic_prob: float = 0.0, cache: bool = True, num_classes: int = 3,
+                 read_size: int | None = None) -> None:
         if img_size % 32:
             raise InputError(f"img_size must be a multiple of 32, got {img_size}")
+        if read_size is not None and read_size < img_size:
+            raise InputError(f"read_size ({read_size}) must be at least img_size ({img_size})")
         self.ann_file = Path(ann_file)
         self.records: list[ImageRecord] = load_coco(ann_file, num_classes)
         self.img_size = img_size
+        self.read_size = img_size if (read_size is None or not augment) else read_size
         self.augment = build_augment() if augment else None
         self.mosaic_prob = mosaic_prob if augment else 0.0
         self.cache = cache
@@ -49,11 +60,12 @@ class CocoDetection(Dataset):
         return len(self.records)
 
     def load_resized(self, index: int) -> tuple[np.ndarray, Boxes, float]:
-        """Image resized to long side ``img_size`` and its boxes scaled alike."""
+        """Image resized to long side ``read_size`` (``img_size`` unless cropping) and its
+        boxes scaled alike."""
         if index in self._cache:
             image, scale = self._cache[index]
         else:
-            image, scale = resize_long_side(read_image(self.records[index]), self.img_size)
+            image, scale = resize_long_side(read_image(self.records[index]), self.read_size)
             if self.cache:
                 self._cache[index] = (image, scale)
         rec = self.records[index]
@@ -66,6 +78,11 @@ class CocoDetection(Dataset):
         if self.mosaic_prob and rng.random() < self.mosaic_prob:
             image, boxes = self._mosaic(index, rng)
             meta = {"image_id": rec.image_id, "scale": 1.0, "pad": (0.0, 0.0),
+                    "size": (rec.height, rec.width)}
+        elif self.read_size > self.img_size:
+            image, boxes, scale = self.load_resized(index)
+            image, boxes, origin = crop_around_box(image, boxes, self.img_size, rng)
+            meta = {"image_id": rec.image_id, "scale": scale, "pad": (-origin[0], -origin[1]),
                     "size": (rec.height, rec.width)}
         else:
             image, boxes, meta = self._letterboxed(index)
@@ -91,6 +108,46 @@ class CocoDetection(Dataset):
         others = rng.integers(0, len(self), 3)
         loaded = [self.load_resized(int(i)) for i in [index, *others]]
         return mosaic([x[0] for x in loaded], [x[1] for x in loaded], self.img_size, rng)
+
+
+def crop_around_box(image: np.ndarray, boxes: Boxes, size: int, rng: np.random.Generator,
+                    p_box: float = 0.8, min_visible: float = 0.9
+                    ) -> tuple[np.ndarray, Boxes, tuple[int, int]]:
+    """A ``size`` square from a larger image: with probability ``p_box`` placed uniformly among
+    the squares holding the centre of a random non-ignored box, else anywhere. Boxes the
+    square cuts to less than ``min_visible`` of their area become ignore regions (a part of a
+    crater is neither a crater to find nor background to learn).
+
+    Returns:
+        The crop (padded with gray where the image is smaller than ``size``), its boxes, and
+        its top-left corner (x, y) in the image, px.
+    """
+    h, w = image.shape[:2]
+    live = np.flatnonzero(~boxes.ignore)
+    if len(live) and rng.random() < p_box:
+        b = boxes.boxes[live[rng.integers(len(live))]]
+        cx, cy = 0.5 * (b[0] + b[2]), 0.5 * (b[1] + b[3])
+        lo_x, hi_x = max(0.0, cx - size + 1), min(cx, w - size)
+        lo_y, hi_y = max(0.0, cy - size + 1), min(cy, h - size)
+        x0 = int(rng.uniform(lo_x, hi_x)) if hi_x > lo_x else max(0, min(int(cx - size / 2), w - size))
+        y0 = int(rng.uniform(lo_y, hi_y)) if hi_y > lo_y else max(0, min(int(cy - size / 2), h - size))
+    else:
+        x0 = int(rng.integers(0, max(w - size, 0) + 1))
+        y0 = int(rng.integers(0, max(h - size, 0) + 1))
+    x0, y0 = max(x0, 0), max(y0, 0)
+    out = np.full((size, size, 3), PAD_VALUE, dtype=np.uint8)
+    part = image[y0:y0 + size, x0:x0 + size]
+    out[:part.shape[0], :part.shape[1]] = part
+    b = boxes.boxes - np.array([x0, y0, x0, y0], np.float32)
+    area = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    c = b.copy()
+    c[:, 0::2] = c[:, 0::2].clip(0, part.shape[1])
+    c[:, 1::2] = c[:, 1::2].clip(0, part.shape[0])
+    kept = (c[:, 2] - c[:, 0]).clip(0) * (c[:, 3] - c[:, 1]).clip(0)
+    inside = kept > 0
+    ignore = boxes.ignore | (kept < min_visible * np.maximum(area, 1e-6))
+    moved = Boxes(c, boxes.labels, ignore).take(inside)
+    return out, drop_small(moved), (x0, y0)
 
 
 def collate(batch: list[Sample]) -> tuple[torch.Tensor, list[dict], list[dict]]:

@@ -4,7 +4,8 @@ import torch
 
 from lunarnav_ml.data.augment import Boxes, apply_augment, build_augment, mosaic
 from lunarnav_ml.data.datamodule import DetectionDataModule, mixing_weights
-from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.data.dataset import CocoDetection, crop_around_box
+from lunarnav_ml.errors import ConfigError, InputError
 
 
 def test_mixing_weights_known_answer():
@@ -51,3 +52,55 @@ def test_mosaic_keeps_boxes_inside_and_labels():
     assert out.shape == (64, 64, 3)
     assert (boxes.boxes >= 0).all() and (boxes.boxes <= 64).all()
     assert set(boxes.labels.tolist()) <= {1, 2, 3} and len(boxes.labels) == len(boxes.ignore)
+
+
+def _gradient_image(h: int, w: int) -> np.ndarray:
+    vv, uu = np.mgrid[0:h, 0:w]
+    return np.stack([uu % 256, vv % 256, (uu // 256 + 4 * (vv // 256)) * 16], -1).astype(np.uint8)
+
+
+def test_crop_around_box_holds_a_box_centre_and_ignores_cut_boxes():
+    image = _gradient_image(300, 1000)
+    boxes = Boxes(np.array([[700.0, 150.0, 760.0, 170.0],   # the only live box
+                            [0.0, 0.0, 1000.0, 40.0],       # wider than any crop: cut
+                            [100.0, 100.0, 120.0, 110.0]], np.float32),
+                  np.array([1, 1, 2]), np.array([False, False, True]))
+    boxes.ignore[1] = True  # only box 0 can centre a crop
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        crop, out, (x0, y0) = crop_around_box(image, boxes, 128, rng, p_box=1.0)
+        assert crop.shape == (128, 128, 3)
+        assert x0 <= 730 < x0 + 128 and y0 <= 160 < y0 + 128  # the box centre is inside
+        np.testing.assert_array_equal(crop, image[y0:y0 + 128, x0:x0 + 128])  # pixels line up
+        live = out.boxes[~out.ignore]
+        assert (out.boxes >= 0).all() and (out.boxes <= 128).all()
+        for b in live:  # a live box is (nearly) whole: 90 % of it inside the crop
+            assert (b[2] - b[0]) * (b[3] - b[1]) >= 0.9 * 60 * 20 - 1e-3
+    # the same generator state gives the same crop
+    a = crop_around_box(image, boxes, 128, np.random.default_rng(7))
+    b = crop_around_box(image, boxes, 128, np.random.default_rng(7))
+    assert a[2] == b[2] and np.array_equal(a[1].boxes, b[1].boxes)
+
+
+def test_crop_cuts_a_live_box_into_an_ignore_region():
+    image = _gradient_image(256, 256)
+    boxes = Boxes(np.array([[10.0, 10.0, 200.0, 30.0]], np.float32), np.array([1]),
+                  np.array([False]))
+    _, out, (x0, _) = crop_around_box(image, boxes, 64, np.random.default_rng(0), p_box=1.0)
+    assert len(out.boxes) == 1 and out.ignore.tolist() == [True]  # 190 px wide in 64 px
+
+
+def test_read_size_crops_training_frames(tiny_coco):
+    ds = CocoDetection(tiny_coco["train"], img_size=64, augment=True, read_size=96)
+    torch.manual_seed(0)
+    image, target, meta = ds[0]
+    assert image.shape == (3, 64, 64)
+    assert meta["scale"] == 1.0 and meta["pad"][0] <= 0 and meta["pad"][1] <= 0
+    assert (target["boxes"] >= 0).all() and (target["boxes"] <= 64).all()
+    assert CocoDetection(tiny_coco["val"], img_size=64, augment=False, read_size=96
+                         ).read_size == 64  # validation sees whole frames
+    with pytest.raises(InputError, match="read_size"):
+        CocoDetection(tiny_coco["val"], img_size=64, read_size=32)
+    with pytest.raises(ConfigError, match="read_sizes: 1 entries for 2"):
+        DetectionDataModule([str(tiny_coco["train"]), str(tiny_coco["val"])],
+                            str(tiny_coco["val"]), read_sizes=[96])
