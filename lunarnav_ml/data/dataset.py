@@ -9,8 +9,14 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from lunarnav_ml.data.augment import (Boxes, apply_augment, build_augment, clip_boxes,
-                                      drop_small, mosaic)
+from lunarnav_ml.data.augment import (
+    Boxes,
+    apply_augment,
+    build_augment,
+    clip_boxes,
+    drop_small,
+    mosaic,
+)
 from lunarnav_ml.data.coco import ImageRecord, load_coco, read_image
 from lunarnav_ml.data.letterbox import PAD_VALUE, letterbox, resize_long_side
 from lunarnav_ml.errors import InputError

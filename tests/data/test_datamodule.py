@@ -86,7 +86,7 @@ def test_crop_cuts_a_live_box_into_an_ignore_region():
     image = _gradient_image(256, 256)
     boxes = Boxes(np.array([[10.0, 10.0, 200.0, 30.0]], np.float32), np.array([1]),
                   np.array([False]))
-    _, out, (x0, _) = crop_around_box(image, boxes, 64, np.random.default_rng(0), p_box=1.0)
+    _, out, _ = crop_around_box(image, boxes, 64, np.random.default_rng(0), p_box=1.0)
     assert len(out.boxes) == 1 and out.ignore.tolist() == [True]  # 190 px wide in 64 px
 
 
