@@ -12,8 +12,11 @@ class TimeBudgetSchedule(L.Callback):
     """Shorten the cosine schedule so it ends when ``Trainer(max_time=...)`` stops training.
 
     After every training epoch (validation included), the steps that still fit in the remaining
-    time are estimated from the pace so far, and the scheduler's ``total_steps`` is lowered to
-    that (never raised above its configured length).
+    time are estimated from the pace so far, and the scheduler's ``total_steps`` is set to that
+    (never above its configured length, ``max_steps``). The estimate may rise again when the
+    pace picks up: the first epoch also decodes and caches the images, and other jobs may have
+    shared the cores for a while; a plan fixed at its lowest would leave the rest of the budget
+    at the schedule's floor.
 
     Args:
         margin: fraction of the remaining time kept free (final validation, checkpointing).
@@ -34,5 +37,6 @@ class TimeBudgetSchedule(L.Callback):
             return
         pace = timer.time_elapsed("train") / trainer.global_step  # s per step, val included
         fit = trainer.global_step + int(max(0.0, remaining * (1 - self.margin)) / pace)
-        sched.total_steps = max(trainer.global_step + 1, min(sched.total_steps, fit))
+        cap = getattr(sched, "max_steps", sched.total_steps)
+        sched.total_steps = max(trainer.global_step + 1, min(cap, fit))
         pl_module.log("train/planned_steps", float(sched.total_steps))

@@ -13,13 +13,14 @@ class WarmupCosine(LRScheduler):
     then cosine down to ``min_ratio * lr`` at ``total_steps``, constant afterwards.
 
     ``total_steps`` is an attribute saved in ``state_dict`` (so a resumed run continues the
-    same curve); a time budget may shorten it during training (see
+    same curve); a time budget may shorten it, up to ``max_steps`` (see
     :class:`lunarnav_ml.training.callbacks.TimeBudgetSchedule`).
     """
 
     def __init__(self, optimizer: torch.optim.Optimizer, total_steps: int, warmup_steps: int = 100,
                  min_ratio: float = 0.05, warmup_start: float = 0.01, last_epoch: int = -1) -> None:
         self.total_steps = max(1, int(total_steps))
+        self.max_steps = self.total_steps  # the configured length: a time budget stays under it
         self.warmup_steps = max(0, int(warmup_steps))
         self.min_ratio, self.warmup_start = min_ratio, warmup_start
         super().__init__(optimizer, last_epoch)
