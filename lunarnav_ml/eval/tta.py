@@ -33,17 +33,11 @@ class TTAConfig:
         scales: input sides as multiples of the model's own side (each rounded to the stride).
         flip: also run every side on the left-right mirrored image.
         fuse_iou: IoU above which boxes of one class from different passes are fused.
-        max_box_px: per scale, the largest box side (network pixels) that scale's passes keep
-            (0: no limit); None keeps every box. For a model trained on crops of frames read
-            at a finer scale (``data.read_sizes``): at that scale it has seen large craters only
-            cut by its crops, so its large boxes are fragments; a coarser pass boxes those
-            whole (multi-scale inference with a valid range per scale, as in SNIP).
     """
 
     scales: tuple[float, ...] = DEFAULT_SCALES
     flip: bool = True
     fuse_iou: float = DEFAULT_FUSE_IOU
-    max_box_px: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         scales = tuple(self.scales)
@@ -52,21 +46,12 @@ class TTAConfig:
         if not 0.0 < self.fuse_iou < 1.0:
             raise ConfigError(f"tta fuse_iou: expected a value in (0, 1), got {self.fuse_iou}")
         object.__setattr__(self, "scales", scales)
-        if self.max_box_px is not None:
-            limits = tuple(float(v) for v in self.max_box_px)
-            if len(limits) != len(scales) or not all(v >= 0 for v in limits):
-                raise ConfigError(f"tta max_box_px: expected one limit >= 0 per scale "
-                                  f"({len(scales)}), got {list(self.max_box_px)}")
-            object.__setattr__(self, "max_box_px", limits)
 
     def describe(self, sides: Sequence[int] | None = None) -> str:
         """One line for report titles: the scales, or the network ``sides`` (px) they gave."""
         what = (f"sides {list(sides)} px" if sides is not None
                 else " / ".join(f"{s:g}" for s in self.scales) + " x the input side")
-        limits = ("" if self.max_box_px is None else ", boxes up to "
-                  + " / ".join(f"{v:g}" if v else "any" for v in self.max_box_px) + " px")
-        return (f"test-time augmentation: {what}{', each mirrored' if self.flip else ''}"
-                f"{limits}, fused")
+        return f"test-time augmentation: {what}{', each mirrored' if self.flip else ''}, fused"
 
 
 def tta_sides(base: int, scales: Sequence[float], stride: int) -> list[int]:
@@ -101,7 +86,6 @@ class TTAPredictor:
         stride = (max(predictor.strides) if hasattr(predictor, "strides")
                   else int(predictor.metadata.max_stride))
         self.sides = tta_sides(self.base_side, config.scales, stride)
-        self.limits = _side_limits(self.base_side, config, stride)
         try:  # a model that cannot run at a side says so now, not halfway through a set
             for side in self.sides:
                 predictor.set_img_size(side)
@@ -128,10 +112,6 @@ class TTAPredictor:
         if not images:
             return []
         runs = self.run_passes(images, conf_thres, iou_thres, max_det)
-        per_side = 2 if self.config.flip else 1
-        runs = [[_keep_up_to(pred, self.limits.get(self.sides[k // per_side], 0.0),
-                             self.sides[k // per_side] / max(image.shape[:2]))
-                 for pred, image in zip(run, images)] for k, run in enumerate(runs)]
         return [fuse_passes([run[i] for run in runs], image.shape, self.config.fuse_iou,
                             conf_thres, max_det) for i, image in enumerate(images)]
 
@@ -178,29 +158,6 @@ def fuse_passes(preds: list[dict[str, np.ndarray]], shape: tuple[int, ...],
             "labels": np.asarray(labels).astype(np.int64)[order]}
 
 
-def _side_limits(base: int, config: TTAConfig, stride: int) -> dict[int, float]:
-    """Network side -> the largest box side its passes keep, px (0: no limit); the first
-    scale that gives a side sets its limit."""
-    if config.max_box_px is None:
-        return {}
-    limits: dict[int, float] = {}
-    for scale, limit in zip(config.scales, config.max_box_px):
-        limits.setdefault(tta_sides(base, (scale,), stride)[0], limit)
-    return limits
-
-
-def _keep_up_to(pred: dict[str, np.ndarray], limit_px: float, net_per_image_px: float
-                ) -> dict[str, np.ndarray]:
-    """A pass's detections without the boxes whose larger side exceeds ``limit_px`` network
-    pixels (``net_per_image_px`` network pixels per image pixel); 0 keeps all."""
-    if not limit_px:
-        return pred
-    boxes = np.asarray(pred["boxes"], np.float32).reshape(-1, 4)
-    side = np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]) * net_per_image_px
-    keep = side <= limit_px
-    return {k: np.asarray(v)[keep] for k, v in pred.items()}
-
-
 def _unmirror(pred: dict[str, np.ndarray], width: int) -> dict[str, np.ndarray]:
     """Boxes found on the mirrored image, in the original image's pixels."""
     boxes = np.asarray(pred["boxes"], np.float32).reshape(-1, 4).copy()
@@ -216,17 +173,8 @@ def add_tta_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tta-scales", type=float, nargs="+", default=list(DEFAULT_SCALES),
                         metavar="S", help="(--tta) input sides as multiples of the model's "
                                           "(or --img-size); default %(default)s, with mirroring")
-    parser.add_argument("--tta-max-box", type=float, nargs="+", default=None, metavar="PX",
-                        help="(--tta) per scale, the largest box side in network pixels that "
-                             "scale's passes keep (0: any), e.g. for a model trained on "
-                             "finer-scale crops: --img-size 1024 --tta-scales 0.375 1 "
-                             "--tta-max-box 0 320")
 
 
 def tta_config(args: argparse.Namespace) -> TTAConfig | None:
     """The :class:`TTAConfig` the ``--tta`` arguments ask for, or None without ``--tta``."""
-    if not getattr(args, "tta", False):
-        return None
-    limits = getattr(args, "tta_max_box", None)
-    return TTAConfig(scales=tuple(args.tta_scales),
-                     max_box_px=None if limits is None else tuple(limits))
+    return TTAConfig(scales=tuple(args.tta_scales)) if getattr(args, "tta", False) else None

@@ -78,18 +78,6 @@ def test_mirrored_passes_map_back_and_agreement_sets_the_score():
     np.testing.assert_allclose(pred["scores"], [0.9, 0.6 / 6], rtol=1e-5)
 
 
-def test_a_box_limit_drops_large_boxes_from_its_scale_only():
-    fake = BrightSquare()
-    # the square is 30 image px wide: 38.4 network px at side 128, 28.8 at 96
-    tta = TTAPredictor(fake, TTAConfig(scales=(0.67, 1.0, 1.33), max_box_px=(0, 30, 30)))
-    assert "boxes up to any / 30 / 30 px" in tta.describe()
-    (pred,) = tta.predict([_image()])
-    np.testing.assert_allclose(pred["boxes"][0], [60, 10, 90, 30], atol=1e-3)
-    np.testing.assert_allclose(pred["scores"], [0.9 * 4 / 6, 0.6 / 6], rtol=1e-5)
-    with pytest.raises(ConfigError, match="max_box_px"):
-        TTAConfig(scales=(1.0, 1.2), max_box_px=(0,))
-
-
 def test_the_side_is_restored_when_a_pass_fails():
     fake = BrightSquare(fail_at=128)
     tta = TTAPredictor(fake, TTAConfig(scales=(1.0, 1.33)))
