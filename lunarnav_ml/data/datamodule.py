@@ -58,11 +58,7 @@ class DetectionDataModule(L.LightningDataModule):
         self.train_files = [train] if isinstance(train, (str, Path)) else list(train)
         if not self.train_files:
             raise ConfigError("data.train: give at least one annotations.json")
-        self.read_sizes = list(read_sizes) if read_sizes is not None else [None] * len(
-            self.train_files)
-        if len(self.read_sizes) != len(self.train_files):
-            raise ConfigError(f"data.read_sizes: {len(self.read_sizes)} entries for "
-                              f"{len(self.train_files)} training sources")
+        self.read_sizes = read_sizes
         self.val_file = val
         self.weights = weights
         self.img_size, self.batch_size, self.num_workers = img_size, batch_size, num_workers
@@ -73,9 +69,14 @@ class DetectionDataModule(L.LightningDataModule):
 
     def setup(self, stage: str | None = None) -> None:
         if not self.train_sets:
+            reads = self.read_sizes or [None] * len(self.train_files)
+            if len(reads) != len(self.train_files):  # checked here, like the weights: a
+                # command line may replace data.train after the config set read_sizes
+                raise ConfigError(f"data.read_sizes: {len(reads)} entries for "
+                                  f"{len(self.train_files)} training sources")
             self.train_sets = [CocoDetection(f, self.img_size, self.augment, self.mosaic_prob,
                                              self.cache, self.num_classes, read)
-                               for f, read in zip(self.train_files, self.read_sizes)]
+                               for f, read in zip(self.train_files, reads)]
         if self.val_set is None:
             self.val_set = CocoDetection(self.val_file, self.img_size, False, 0.0, self.cache,
                                          self.num_classes)

@@ -103,4 +103,4 @@ def test_read_size_crops_training_frames(tiny_coco):
         CocoDetection(tiny_coco["val"], img_size=64, read_size=32)
     with pytest.raises(ConfigError, match="read_sizes: 1 entries for 2"):
         DetectionDataModule([str(tiny_coco["train"]), str(tiny_coco["val"])],
-                            str(tiny_coco["val"]), read_sizes=[96])
+                            str(tiny_coco["val"]), read_sizes=[96]).setup("fit")
