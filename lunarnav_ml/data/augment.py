@@ -75,14 +75,17 @@ def drop_small(boxes: Boxes, min_px: float = MIN_BOX_PX) -> Boxes:
     return boxes.take((wh >= min_px).all(axis=1))
 
 
-def clip_boxes(boxes: Boxes, width: int, height: int, min_keep: float = 0.4) -> Boxes:
-    """Clip to the image; drop boxes keeping less than ``min_keep`` of their area."""
+def clip_boxes(boxes: Boxes, width: int, height: int, min_keep: float = 0.4,
+               ignore_below: float = 0.0) -> Boxes:
+    """Clip to the image; drop boxes keeping less than ``min_keep`` of their area, and turn
+    those keeping less than ``ignore_below`` into ignore regions."""
     b = boxes.boxes.copy()
     area = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
     b[:, 0::2] = b[:, 0::2].clip(0, width)
     b[:, 1::2] = b[:, 1::2].clip(0, height)
     kept = (b[:, 2] - b[:, 0]).clip(0) * (b[:, 3] - b[:, 1]).clip(0)
-    out = Boxes(b, boxes.labels, boxes.ignore).take(kept >= min_keep * np.maximum(area, 1e-6))
+    frac = kept / np.maximum(area, 1e-6)
+    out = Boxes(b, boxes.labels, boxes.ignore | (frac < ignore_below)).take(frac >= min_keep)
     return drop_small(out)
 
 

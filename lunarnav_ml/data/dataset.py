@@ -9,14 +9,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from lunarnav_ml.data.augment import (
-    Boxes,
-    apply_augment,
-    build_augment,
-    clip_boxes,
-    drop_small,
-    mosaic,
-)
+from lunarnav_ml.data.augment import Boxes, apply_augment, build_augment, clip_boxes, mosaic
 from lunarnav_ml.data.coco import ImageRecord, load_coco, read_image
 from lunarnav_ml.data.letterbox import PAD_VALUE, letterbox, resize_long_side
 from lunarnav_ml.errors import InputError
@@ -132,28 +125,26 @@ def crop_around_box(image: np.ndarray, boxes: Boxes, size: int, rng: np.random.G
     live = np.flatnonzero(~boxes.ignore)
     if len(live) and rng.random() < p_box:
         b = boxes.boxes[live[rng.integers(len(live))]]
-        cx, cy = 0.5 * (b[0] + b[2]), 0.5 * (b[1] + b[3])
-        lo_x, hi_x = max(0.0, cx - size + 1), min(cx, w - size)
-        lo_y, hi_y = max(0.0, cy - size + 1), min(cy, h - size)
-        x0 = int(rng.uniform(lo_x, hi_x)) if hi_x > lo_x else max(0, min(int(cx - size / 2), w - size))
-        y0 = int(rng.uniform(lo_y, hi_y)) if hi_y > lo_y else max(0, min(int(cy - size / 2), h - size))
+        x0 = _origin_holding(0.5 * (b[0] + b[2]), w, size, rng)
+        y0 = _origin_holding(0.5 * (b[1] + b[3]), h, size, rng)
     else:
         x0 = int(rng.integers(0, max(w - size, 0) + 1))
         y0 = int(rng.integers(0, max(h - size, 0) + 1))
-    x0, y0 = max(x0, 0), max(y0, 0)
     out = np.full((size, size, 3), PAD_VALUE, dtype=np.uint8)
     part = image[y0:y0 + size, x0:x0 + size]
     out[:part.shape[0], :part.shape[1]] = part
-    b = boxes.boxes - np.array([x0, y0, x0, y0], np.float32)
-    area = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    c = b.copy()
-    c[:, 0::2] = c[:, 0::2].clip(0, part.shape[1])
-    c[:, 1::2] = c[:, 1::2].clip(0, part.shape[0])
-    kept = (c[:, 2] - c[:, 0]).clip(0) * (c[:, 3] - c[:, 1]).clip(0)
-    inside = kept > 0
-    ignore = boxes.ignore | (kept < min_visible * np.maximum(area, 1e-6))
-    moved = Boxes(c, boxes.labels, ignore).take(inside)
-    return out, drop_small(moved), (x0, y0)
+    moved = Boxes(boxes.boxes - np.array([x0, y0, x0, y0], np.float32), boxes.labels,
+                  boxes.ignore)
+    return out, clip_boxes(moved, part.shape[1], part.shape[0], min_keep=0.0,
+                           ignore_below=min_visible), (x0, y0)
+
+
+def _origin_holding(c: float, extent: int, size: int, rng: np.random.Generator) -> int:
+    """A uniform start in [0, extent - size] of a ``size`` window that holds coordinate ``c``
+    (the nearest start where the extent allows no such window)."""
+    lo, hi = max(0.0, c - size + 1), min(c, extent - size)
+    start = rng.uniform(lo, hi) if hi > lo else min(c - size / 2, extent - size)
+    return max(int(start), 0)
 
 
 def collate(batch: list[Sample]) -> tuple[torch.Tensor, list[dict], list[dict]]:

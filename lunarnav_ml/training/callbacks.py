@@ -37,6 +37,5 @@ class TimeBudgetSchedule(L.Callback):
             return
         pace = timer.time_elapsed("train") / trainer.global_step  # s per step, val included
         fit = trainer.global_step + int(max(0.0, remaining * (1 - self.margin)) / pace)
-        cap = getattr(sched, "max_steps", sched.total_steps)
-        sched.total_steps = max(trainer.global_step + 1, min(cap, fit))
+        sched.total_steps = max(trainer.global_step + 1, min(sched.max_steps, fit))
         pl_module.log("train/planned_steps", float(sched.total_steps))
