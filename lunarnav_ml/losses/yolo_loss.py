@@ -118,7 +118,7 @@ class YOLOLoss(nn.Module):
     def _class_targets(self, classes: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         eps = self.label_smoothing
         target = torch.full_like(t[:, 5:], 0.5 * eps)
-        target[torch.arange(len(classes)), classes] = 1.0 - 0.5 * eps
+        target[torch.arange(len(classes), device=classes.device), classes] = 1.0 - 0.5 * eps
         return target
 
     @torch.no_grad()

@@ -1,0 +1,89 @@
+#!/usr/bin/env bash
+# One GPU, one wall-clock budget: render configs/small_relu_gpu.yaml's sources on the machine's
+# cores, fine-tune on the GPU until the budget is spent, and leave the slim weights, the logs and
+# the metrics in $OUT (BENCHMARKS.md, issue 4, "One GPU").
+#
+#   OUT=outputs/gpu BUDGET_S=540 bash benchmarks/device_train.sh
+#
+# Made for the lent device machine (nothing installed from a registry there): its python3 holds
+# torch and Lightning; the packages it lacks come as a --target folder on PYTHONPATH (SITE).
+# Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
+# nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
+# PY (default python3), EXTRA (more `train.py fit` arguments, e.g. for a CPU smoke run).
+set -euo pipefail
+t0=$(date +%s)
+BUDGET_S=${BUDGET_S:-540}
+OUT=${OUT:?set OUT to the folder for the results}
+PY=${PY:-python3}
+WORKERS=${WORKERS:-$(nproc)}
+N_TRAIN=${N_TRAIN:-3000}
+N_TRANSFER=${N_TRANSFER:-1200}
+MONO_N=${MONO_N:-}
+DATA=${DATA:-data/gpu}
+RUN=runs/small_relu_gpu  # the config's logger and checkpoint folder
+[ -n "${SITE:-}" ] && export PYTHONPATH="$SITE:${PYTHONPATH:-}"
+export PYTHONPATH="$PWD:${PYTHONPATH:-}"
+mkdir -p "$OUT" "$DATA"
+log() { echo "[$(($(date +%s) - t0)) s] $*" | tee -a "$OUT/log.txt"; }
+lunarnav() { "$PY" -c 'import sys; from lunarnav_ml.cli import main; sys.exit(main())' "$@"; }
+
+log "imports"
+"$PY" - <<'EOF' 2>&1 | tee -a "$OUT/log.txt"
+import albumentations, jsonargparse, pycocotools, torch, lightning, cv2, numba
+from lightning.pytorch.cli import LightningCLI  # needs jsonargparse[signatures]
+import lunarnav_ml.training.lightning_cli
+print("torch", torch.__version__, "lightning", lightning.__version__, "cuda",
+      torch.cuda.is_available(), torch.cuda.get_device_name(0) if torch.cuda.is_available() else "")
+EOF
+if command -v nvidia-smi >/dev/null; then
+    nvidia-smi -L | tee -a "$OUT/log.txt"
+    nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader -l 15 \
+        >"$OUT/gpu_util.txt" 2>&1 &
+fi
+
+synth() {  # name, then lunarnav synth arguments
+    local name=$1; shift
+    lunarnav synth "$DATA/$name" --size 384 --no-stereo --quiet "$@" >"$DATA/$name.log" 2>&1
+}
+log "render validation and training sources, $WORKERS processes each"
+synth val --n 48 --seed 1000003 --config configs/synth/default.yaml --workers 2 &
+p0=$!
+mono_n=(); [ -n "$MONO_N" ] && mono_n=(--n "$MONO_N")
+synth train --n "$N_TRAIN" --seed 0 --config configs/synth/default.yaml --workers "$WORKERS" &
+p1=$!
+synth transfer --n "$N_TRANSFER" --seed 5000011 --config configs/synth/transfer.yaml \
+    --workers "$WORKERS" &
+p2=$!
+synth mono1024 --protocol paper-mono --seed 9100003 --shard 0/4 "${mono_n[@]}" --size 1024 \
+    --workers "$WORKERS" &
+p3=$!
+fail() { log "$1"; tail -n 30 "$2"; kill $p1 $p2 $p3 2>/dev/null; exit 1; }
+wait $p0 || fail "rendering failed" "$DATA/val.log"
+log "smoke run on the validation renders while the others render"
+"$PY" train.py fit --config configs/small_relu_gpu.yaml --data.train "$DATA/val/annotations.json" \
+    --data.read_sizes null --data.weights null --data.val "$DATA/val/annotations.json" \
+    --data.batch_size 16 --data.num_workers 2 --trainer.max_steps 3 \
+    --trainer.check_val_every_n_epoch 1 --trainer.enable_progress_bar false ${EXTRA:-} \
+    >"$OUT/smoke.txt" 2>&1 || fail "smoke run failed" "$OUT/smoke.txt"
+rm -rf "$RUN"
+wait $p1 && wait $p2 && wait $p3 || fail "rendering failed" "$DATA/train.log"
+log "rendered: $(du -sh "$DATA" | cut -f1)"
+
+left=$((BUDGET_S - ($(date +%s) - t0) - 60))  # a minute for start-up, the last save, export
+[ "$left" -gt 30 ] || { log "no time left to train"; exit 1; }
+max_time=$(printf '00:00:%02d:%02d' $((left / 60)) $((left % 60)))
+log "train, max_time $max_time"
+"$PY" train.py fit --config configs/small_relu_gpu.yaml --data.num_workers $((WORKERS - 2)) \
+    --trainer.max_time "$max_time" --trainer.enable_progress_bar false ${EXTRA:-} \
+    >"$OUT/train.txt" 2>&1 || { log "training failed"; tail -n 30 "$OUT/train.txt"; }
+log "export"
+"$PY" - "$RUN" "$OUT" <<'EOF' 2>&1 | tee -a "$OUT/log.txt"
+import glob, shutil, sys
+from lunarnav_ml.training.api import load_detector
+run, out = sys.argv[1:]
+load_detector(f"{run}/checkpoints/last.ckpt").save(f"{out}/small_gpu.pt", half=True)
+for f in sorted(glob.glob(f"{run}/csv/*/metrics.csv"))[-1:]:
+    shutil.copy(f, f"{out}/metrics.csv")
+print("saved", f"{out}/small_gpu.pt")
+EOF
+log "done"
