@@ -43,7 +43,8 @@ class DetectionDataModule(L.LightningDataModule):
         num_workers: loader worker processes.
         mosaic_prob: probability of a 4-image mosaic per training sample.
         augment: box-aware photometric/geometric augmentation of training samples.
-        cache: keep decoded images in memory.
+        cache: keep decoded images in memory. With loader workers, every image is decoded
+            once at setup (threaded) and the forked workers share them.
         num_classes: category ids 1..num_classes.
         read_sizes: per training source, the long side its frames are read at before a
             random ``img_size`` crop (:class:`CocoDetection` ``read_size``); None or a None
@@ -80,6 +81,9 @@ class DetectionDataModule(L.LightningDataModule):
         if self.val_set is None:
             self.val_set = CocoDetection(self.val_file, self.img_size, False, 0.0, self.cache,
                                          self.num_classes)
+            if self.cache and self.num_workers > 0:
+                for ds in [*self.train_sets, self.val_set]:
+                    ds.preload(self.num_workers)
 
     def kmeans_anchors(self, levels: int, per_level: int = 3, seed: int = 0) -> np.ndarray:
         """Anchors from k-means on all training boxes, :math:`(levels, per_level, 2)` px."""
@@ -97,7 +101,8 @@ class DetectionDataModule(L.LightningDataModule):
         return DataLoader(data, self.batch_size, shuffle=sampler is None, sampler=sampler,
                           num_workers=self.num_workers, collate_fn=collate,
                           drop_last=len(data) >= 2 * self.batch_size,
-                          persistent_workers=self.num_workers > 0)
+                          persistent_workers=self.num_workers > 0,
+                          pin_memory=torch.cuda.is_available())
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(self.val_set, self.batch_size, shuffle=False,

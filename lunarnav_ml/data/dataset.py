@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -58,13 +59,30 @@ class CocoDetection(Dataset):
     def __len__(self) -> int:
         return len(self.records)
 
+    def preload(self, threads: int = 4) -> None:
+        """Decode and resize every image into the cache now, ``threads`` at a time.
+
+        Loader workers forked afterwards share the decoded images; left to fill itself, each
+        worker's cache holds only what that worker has drawn, so with many workers most
+        samples of the first epochs are decoded again.
+        """
+        if not self.cache:
+            return
+        todo = [i for i in range(len(self)) if i not in self._cache]
+        with ThreadPoolExecutor(max(1, threads)) as pool:  # cv2 releases the GIL
+            for i, item in zip(todo, pool.map(self._decode, todo)):
+                self._cache[i] = item
+
+    def _decode(self, index: int) -> tuple[np.ndarray, float]:
+        return resize_long_side(read_image(self.records[index]), self.read_size)
+
     def load_resized(self, index: int) -> tuple[np.ndarray, Boxes, float]:
         """Image resized to long side ``read_size`` (``img_size`` unless cropping) and its
         boxes scaled alike."""
         if index in self._cache:
             image, scale = self._cache[index]
         else:
-            image, scale = resize_long_side(read_image(self.records[index]), self.read_size)
+            image, scale = self._decode(index)
             if self.cache:
                 self._cache[index] = (image, scale)
         rec = self.records[index]

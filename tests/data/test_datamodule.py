@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -104,3 +106,25 @@ def test_read_size_crops_training_frames(tiny_coco):
     with pytest.raises(ConfigError, match="read_sizes: 1 entries for 2"):
         DetectionDataModule([str(tiny_coco["train"]), str(tiny_coco["val"])],
                             str(tiny_coco["val"]), read_sizes=[96]).setup("fit")
+
+
+def test_preload_fills_the_cache_the_workers_share(tiny_coco):
+    lazy = CocoDetection(tiny_coco["train"], img_size=64)
+    dm = DetectionDataModule(str(tiny_coco["train"]), str(tiny_coco["val"]), img_size=64,
+                             batch_size=4, num_workers=1, augment=False)
+    dm.setup("fit")
+    ds = dm.train_sets[0]
+    assert len(ds._cache) == len(ds) and len(dm.val_set._cache) == len(dm.val_set)
+    for i in (0, len(ds) - 1):
+        np.testing.assert_array_equal(ds[i][0].numpy(), lazy[i][0].numpy())
+    ids = [m["image_id"] for _, _, metas in dm.train_dataloader() for m in metas]
+    assert sorted(ids) == sorted(r.image_id for r in ds.records)
+
+
+def test_preload_names_a_corrupt_image(tiny_coco, tmp_path):
+    ds = CocoDetection(tiny_coco["val"], img_size=64)
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"not a png")
+    ds.records[3] = dataclasses.replace(ds.records[3], path=bad)
+    with pytest.raises(InputError, match="bad.png: corrupt"):
+        ds.preload(threads=2)
