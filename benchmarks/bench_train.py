@@ -1,10 +1,14 @@
-"""Training throughput per preset on CPU (images/s of forward + loss + backward + AdamW step).
+"""Training throughput per preset (images/s of forward + loss + backward + AdamW step).
 
     .venv/bin/python benchmarks/bench_train.py --presets nano tiny small --size 320 --batch 8
     .venv/bin/python benchmarks/bench_train.py --presets small --size 384 --precision 32 bf16
+    python3 benchmarks/bench_train.py --device cuda --presets small-relu --size 384 --batch 64 \
+        --precision bf16 --steps 30 --warmup 5
 
-``--precision bf16`` runs forward and loss under CPU autocast in bfloat16 (Lightning's
-``trainer.precision: bf16-mixed``); it pays off on CPUs with AVX512-BF16 or AMX.
+``--precision bf16`` runs forward and loss under autocast in bfloat16 (Lightning's
+``trainer.precision: bf16-mixed``); on CPU it pays off with AVX512-BF16 or AMX. On a GPU the
+figure has no data loading in it: set it against a training run's steps/s to see whether the
+loader or the model holds the run.
 
 Random images with a few random boxes each; prints one line per preset.
 """
@@ -31,29 +35,35 @@ def _targets(batch: int, size: int, gen: torch.Generator) -> list[dict[str, torc
 
 
 def bench(preset: str, size: int, batch: int, steps: int, warmup: int,
-          precision: str = "32") -> dict[str, float]:
+          precision: str = "32", device: str = "cpu") -> dict[str, float]:
     """Seconds per training step and images per second for one preset."""
-    autocast = torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16")
+    dev = torch.device(device)
+    autocast = torch.autocast(dev.type, dtype=torch.bfloat16, enabled=precision == "bf16")
     gen = torch.Generator().manual_seed(0)
-    model = build_model(preset).train()
+    model = build_model(preset).train().to(dev)
     loss_fn = YOLOLoss(model.num_classes)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
-    x = torch.rand(batch, 3, size, size, generator=gen)
-    targets = _targets(batch, size, gen)
+    x = torch.rand(batch, 3, size, size, generator=gen).to(dev)
+    targets = [{k: v.to(dev) for k, v in t.items()} for t in _targets(batch, size, gen)]
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     for i in range(warmup + steps):
         if i == warmup:
+            sync()
             start = time.perf_counter()
         with autocast:
             loss = loss_fn(model(x), targets, model.anchors, model.strides, model.scale_xy)["loss"]
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+    sync()
     step = (time.perf_counter() - start) / steps
     model.eval()
     with torch.no_grad(), autocast:
         model(x)
+        sync()
         t0 = time.perf_counter()
         model(x)
+        sync()
         infer = time.perf_counter() - t0
     return {"params_m": count_parameters(model) / 1e6, "step_s": step,
             "train_img_s": batch / step, "infer_img_s": batch / infer}
@@ -67,16 +77,18 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ...")
     parser.add_argument("--precision", nargs="+", choices=("32", "bf16"), default=["32"],
                         help="float32 and/or bfloat16 autocast")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, input {args.size} px, "
-          f"batch {args.batch}")
+    print(f"torch {torch.__version__}, {args.device}, {torch.get_num_threads()} threads, "
+          f"input {args.size} px, batch {args.batch}")
     for preset in args.presets:
         for precision in args.precision:
-            r = bench(preset, args.size, args.batch, args.steps, args.warmup, precision)
+            r = bench(preset, args.size, args.batch, args.steps, args.warmup, precision,
+                      args.device)
             print(f"{preset:8s} {precision:>4s} {r['params_m']:6.2f} M params  train "
                   f"{r['train_img_s']:6.1f} img/s "
                   f"({r['step_s']:.2f} s/step)  inference {r['infer_img_s']:6.1f} img/s")
