@@ -30,17 +30,44 @@ def flatten_targets(targets: list[dict[str, torch.Tensor]], device: torch.device
         ``gt`` :math:`(M, 6)` rows ``(image, class 0..K-1, cx, cy, w, h)`` of boxes to learn,
         and ``ign`` :math:`(Q, 5)` rows ``(image, x0, y0, x1, y1)`` of ignore regions.
     """
-    rows, ign_rows = [], []
-    for i, t in enumerate(targets):
-        boxes = t["boxes"].to(device=device, dtype=torch.float32)
-        labels = t["labels"].to(device)
-        ignore = t.get("ignore", torch.zeros_like(labels, dtype=torch.bool)).to(device).bool()
-        idx = torch.full((len(boxes), 1), float(i), device=device)
-        cxcywh = torch.cat([(boxes[:, :2] + boxes[:, 2:]) / 2, boxes[:, 2:] - boxes[:, :2]], 1)
-        rows.append(torch.cat([idx, (labels[:, None] - 1).float(), cxcywh], dim=1)[~ignore])
-        ign_rows.append(torch.cat([idx, boxes], dim=1)[ignore])
-    empty6, empty5 = torch.zeros(0, 6, device=device), torch.zeros(0, 5, device=device)
-    return torch.cat(rows + [empty6]), torch.cat(ign_rows + [empty5])
+    # one concatenation and one boolean split for the whole batch: on a GPU a loop over the
+    # images costs a synchronisation per image
+    counts = [len(t["boxes"]) for t in targets]
+    if not targets or sum(counts) == 0:
+        return torch.zeros(0, 6, device=device), torch.zeros(0, 5, device=device)
+    boxes = torch.cat([t["boxes"] for t in targets]).to(device=device, dtype=torch.float32)
+    labels = torch.cat([t["labels"] for t in targets]).to(device)
+    ignore = torch.cat([t["ignore"] if "ignore" in t else torch.zeros_like(t["labels"],
+                                                                          dtype=torch.bool)
+                        for t in targets]).to(device).bool()
+    idx = torch.repeat_interleave(torch.arange(len(targets), device=device, dtype=torch.float32),
+                                  torch.tensor(counts, device=device),
+                                  output_size=sum(counts))[:, None]
+    cxcywh = torch.cat([(boxes[:, :2] + boxes[:, 2:]) / 2, boxes[:, 2:] - boxes[:, :2]], 1)
+    rows = torch.cat([idx, (labels[:, None] - 1).float(), cxcywh], dim=1)
+    return rows[~ignore], torch.cat([idx, boxes], dim=1)[ignore]
+
+
+def per_image(image: torch.Tensor, rows: torch.Tensor, batch: int
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows grouped by image and padded: ``(B, G, C)`` with G the most rows of one image, and
+    ``(B, G)`` True where a row is real.
+
+    Args:
+        image: :math:`(M,)` image index of each row, in 0..batch-1.
+        rows: :math:`(M, C)`.
+    """
+    counts = torch.bincount(image, minlength=batch)
+    width = int(counts.max()) if len(image) else 0
+    order = torch.argsort(image, stable=True)
+    image = image[order]
+    start = torch.cumsum(counts, 0) - counts  # first row of each image in sorted order
+    slot = torch.arange(len(image), device=image.device) - start[image]
+    padded = rows.new_zeros(batch, width, rows.shape[1])
+    valid = torch.zeros(batch, width, dtype=torch.bool, device=rows.device)
+    padded[image, slot] = rows[order]
+    valid[image, slot] = True
+    return padded, valid
 
 
 def assign(gt: torch.Tensor, anchors: torch.Tensor, strides: tuple[int, ...],

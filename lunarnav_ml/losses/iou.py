@@ -45,3 +45,19 @@ def wh_iou(wh1: torch.Tensor, wh2: torch.Tensor) -> torch.Tensor:
     """
     inter = torch.min(wh1[:, None], wh2[None]).prod(dim=2)
     return inter / (wh1.prod(dim=1)[:, None] + wh2.prod(dim=1)[None] - inter)
+
+
+def batched_box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """IoU of every box of ``a`` with every box of ``b``, image by image.
+
+    Shape:
+        - a: :math:`(B, N, 4)` ``(x0, y0, x1, y1)``; b: :math:`(B, G, 4)`, same units.
+        - Output: :math:`(B, N, G)` (torchvision's ``box_iou`` per image).
+    """
+    area_a = (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1])
+    area_b = (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1])
+    lt = torch.max(a[:, :, None, :2], b[:, None, :, :2])
+    rb = torch.min(a[:, :, None, 2:], b[:, None, :, 2:])
+    wh = (rb - lt).clamp(min=0)
+    inter = wh[..., 0] * wh[..., 1]
+    return inter / (area_a[:, :, None] + area_b[:, None, :] - inter)

@@ -25,7 +25,20 @@ def check_targets(targets: list[dict[str, torch.Tensor]], num_classes: int, batc
                              f"{tuple(boxes.shape)} and {tuple(labels.shape)}")
         if "ignore" in t and t["ignore"].shape != labels.shape:
             raise InputError(f"targets[{i}]: ignore must be (N,), got {tuple(t['ignore'].shape)}")
-        _check_values(i, boxes, labels, num_classes)
+    if not any(len(t["boxes"]) for t in targets):
+        return
+    # the values of the whole batch at once (one synchronisation on a GPU); per image only to
+    # name the culprit
+    if _bad(torch.cat([t["boxes"] for t in targets]), torch.cat([t["labels"] for t in targets]),
+            num_classes).any():
+        for i, t in enumerate(targets):
+            _check_values(i, t["boxes"], t["labels"], num_classes)
+
+
+def _bad(boxes: torch.Tensor, labels: torch.Tensor, num_classes: int) -> torch.Tensor:
+    """Per box: not finite, not positive in width or height, or a label outside 1..K."""
+    return (~torch.isfinite(boxes).all(dim=1) | (boxes[:, 2] <= boxes[:, 0])
+            | (boxes[:, 3] <= boxes[:, 1]) | (labels < 1) | (labels > num_classes))
 
 
 def _check_values(i: int, boxes: torch.Tensor, labels: torch.Tensor, num_classes: int) -> None:

@@ -8,10 +8,10 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 from torch import nn
-from torchvision.ops import box_convert, box_iou
+from torchvision.ops import box_convert
 
-from lunarnav_ml.losses.assigner import LevelTargets, assign, flatten_targets
-from lunarnav_ml.losses.iou import ciou
+from lunarnav_ml.losses.assigner import LevelTargets, assign, flatten_targets, per_image
+from lunarnav_ml.losses.iou import batched_box_iou, ciou
 from lunarnav_ml.losses.targets import check_targets
 from lunarnav_ml.models.decode import MAX_LOG_WH, decode_xywh, split_raw
 
@@ -131,20 +131,21 @@ class YOLOLoss(nn.Module):
             - Output: :math:`(B, A, H, W)`
         """
         boxes = decode_xywh(p[..., :4].float(), anchors, stride, scale_xy)  # (B, A, H, W, 4)
-        weight = torch.ones(boxes.shape[:-1], device=p.device)
-        for b in range(boxes.shape[0]):
-            flat = boxes[b].reshape(-1, 4)
-            mask = torch.zeros(len(flat), dtype=torch.bool, device=p.device)
-            gt_b = gt[gt[:, 0] == b, 2:6]
-            if len(gt_b):
-                iou = box_iou(box_convert(flat, "cxcywh", "xyxy"),
-                              box_convert(gt_b, "cxcywh", "xyxy"))
-                mask |= iou.max(dim=1).values > self.ignore_thresh
-            ign_b = ign[ign[:, 0] == b, 1:5]
-            if len(ign_b):
-                cx, cy = flat[:, 0:1], flat[:, 1:2]
-                inside = ((cx >= ign_b[:, 0]) & (cx <= ign_b[:, 2]) & (cy >= ign_b[:, 1])
-                          & (cy <= ign_b[:, 3]))
-                mask |= inside.any(dim=1)
-            weight[b].view(-1)[mask] = 0.0
-        return weight
+        flat = boxes.reshape(boxes.shape[0], -1, 4)  # (B, N, 4)
+        mask = torch.zeros(flat.shape[:2], dtype=torch.bool, device=p.device)
+        if len(gt):  # images side by side, their boxes padded (no loop: one sync on a GPU)
+            g, valid = per_image(gt[:, 0].long(), gt[:, 2:6], len(flat))
+            pred_xyxy = box_convert(flat, "cxcywh", "xyxy")
+            gt_xyxy = box_convert(g, "cxcywh", "xyxy")
+            chunk = max(1, 2**24 // max(1, flat.shape[1] * g.shape[1]))  # bounds the memory
+            for b in range(0, len(flat), chunk):
+                iou = batched_box_iou(pred_xyxy[b:b + chunk], gt_xyxy[b:b + chunk])  # (b, N, G)
+                iou = iou.masked_fill(~valid[b:b + chunk, None, :], -1.0)
+                mask[b:b + chunk] |= iou.amax(dim=2) > self.ignore_thresh
+        if len(ign):
+            r, valid = per_image(ign[:, 0].long(), ign[:, 1:5], len(flat))
+            cx, cy = flat[..., 0:1], flat[..., 1:2]  # (B, N, 1) against (B, 1, Q)
+            inside = ((cx >= r[:, None, :, 0]) & (cx <= r[:, None, :, 2])
+                      & (cy >= r[:, None, :, 1]) & (cy <= r[:, None, :, 3]) & valid[:, None, :])
+            mask |= inside.any(dim=2)
+        return (~mask).float().reshape(boxes.shape[:-1])

@@ -132,3 +132,71 @@ def test_wrong_number_of_targets_raises():
     raw = model(torch.rand(2, 3, 64, 64))
     with pytest.raises(InputError, match="1 entries for a batch of 2"):
         YOLOLoss(3)(raw, _targets()[:1], model.anchors, model.strides, model.scale_xy)
+
+
+def _random_targets(gen: torch.Generator, n_images: int, size: float):
+    out = []
+    for i in range(n_images):
+        n = [0, 1, 5, 12][i % 4]  # images without boxes, and unequal counts, in one batch
+        xy = torch.rand(n, 2, generator=gen) * size * 0.8
+        wh = 2 + torch.rand(n, 2, generator=gen) * size * 0.3
+        out.append({"boxes": torch.cat([xy, xy + wh], 1),
+                    "labels": torch.randint(1, 4, (n,), generator=gen),
+                    "ignore": torch.rand(n, generator=gen) < 0.3})
+    return out
+
+
+def _negative_weight_per_image(boxes, gt, ign, thresh):
+    """The ignore mask one image at a time (torchvision's box_iou): what the batched one must
+    reproduce."""
+    from torchvision.ops import box_convert, box_iou
+    weight = torch.ones(boxes.shape[:-1])
+    for b in range(boxes.shape[0]):
+        flat = boxes[b].reshape(-1, 4)
+        mask = torch.zeros(len(flat), dtype=torch.bool)
+        gt_b = gt[gt[:, 0] == b, 2:6]
+        if len(gt_b):
+            iou = box_iou(box_convert(flat, "cxcywh", "xyxy"), box_convert(gt_b, "cxcywh", "xyxy"))
+            mask |= iou.max(dim=1).values > thresh
+        ign_b = ign[ign[:, 0] == b, 1:5]
+        if len(ign_b):
+            cx, cy = flat[:, 0:1], flat[:, 1:2]
+            mask |= ((cx >= ign_b[:, 0]) & (cx <= ign_b[:, 2]) & (cy >= ign_b[:, 1])
+                     & (cy <= ign_b[:, 3])).any(dim=1)
+        weight[b].view(-1)[mask] = 0.0
+    return weight
+
+
+def test_batched_negative_weight_matches_the_per_image_mask():
+    from lunarnav_ml.models.decode import decode_xywh, split_raw
+    gen = torch.Generator().manual_seed(3)
+    targets = _random_targets(gen, 8, 128.0)
+    gt, ign = flatten_targets(targets, torch.device("cpu"))
+    assert 3 <= len(gt[:, 0].unique()) < 8 and len(ign)  # some images without boxes
+    loss = YOLOLoss(3)
+    anchors = torch.tensor([[8.0, 8.0], [24.0, 16.0], [48.0, 40.0]])
+    raw = torch.randn(8, 3 * 8, 16, 16, generator=gen)  # one stride-8 level of a 128 px input
+    p = split_raw(raw, 3)
+    got = loss._negative_weight(p, gt, ign, anchors, 8, 2.0)
+    boxes = decode_xywh(p[..., :4].float(), anchors, 8, 2.0)
+    want = _negative_weight_per_image(boxes, gt, ign, loss.ignore_thresh)
+    assert got.shape == (8, 3, 16, 16) and 0 < (got == 0).sum() < got.numel()
+    torch.testing.assert_close(got, want, rtol=0, atol=0)
+
+
+def test_flatten_keeps_image_order_and_ignore_split():
+    gen = torch.Generator().manual_seed(4)
+    targets = _random_targets(gen, 6, 96.0)
+    gt, ign = flatten_targets(targets, torch.device("cpu"))
+    for i, t in enumerate(targets):
+        keep = ~t["ignore"]
+        rows = gt[gt[:, 0] == i]
+        torch.testing.assert_close(rows[:, 1], (t["labels"][keep] - 1).float())
+        b = t["boxes"][keep]
+        torch.testing.assert_close(rows[:, 4:6], b[:, 2:] - b[:, :2])
+        torch.testing.assert_close(ign[ign[:, 0] == i, 1:], t["boxes"][t["ignore"]])
+    assert gt[:, 0].tolist() == sorted(gt[:, 0].tolist())
+    empty_gt, empty_ign = flatten_targets([{"boxes": torch.zeros(0, 4),
+                                            "labels": torch.zeros(0, dtype=torch.long)}],
+                                          torch.device("cpu"))
+    assert empty_gt.shape == (0, 6) and empty_ign.shape == (0, 5)
