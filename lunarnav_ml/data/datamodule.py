@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import lightning as L
 import numpy as np
 import torch
@@ -92,6 +93,11 @@ class DetectionDataModule(L.LightningDataModule):
         return anchors_for_levels(sizes, levels, per_level, seed)
 
     def train_dataloader(self) -> DataLoader:
+        if self.num_workers > 0:
+            # one OpenCV thread in each worker (their samples run side by side already): set
+            # here, before the workers fork, since setting it inside a forked worker deadlocks
+            # once this process has used OpenCV's thread pool. This process keeps the setting.
+            cv2.setNumThreads(1)
         data = ConcatDataset(self.train_sets)
         sampler = None
         if len(self.train_sets) > 1 or self.weights is not None:

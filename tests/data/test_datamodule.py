@@ -1,5 +1,6 @@
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -117,7 +118,12 @@ def test_preload_fills_the_cache_the_workers_share(tiny_coco):
     assert len(ds._cache) == len(ds) and len(dm.val_set._cache) == len(dm.val_set)
     for i in (0, len(ds) - 1):
         np.testing.assert_array_equal(ds[i][0].numpy(), lazy[i][0].numpy())
-    ids = [m["image_id"] for _, _, metas in dm.train_dataloader() for m in metas]
+    threads = cv2.getNumThreads()
+    try:
+        ids = [m["image_id"] for _, _, metas in dm.train_dataloader() for m in metas]
+        assert cv2.getNumThreads() == 1  # set before the workers fork, not inside them
+    finally:
+        cv2.setNumThreads(threads)
     assert sorted(ids) == sorted(r.image_id for r in ds.records)
 
 
