@@ -33,7 +33,7 @@ def flatten_targets(targets: list[dict[str, torch.Tensor]], device: torch.device
     # one concatenation and one boolean split for the whole batch: on a GPU a loop over the
     # images costs a synchronisation per image
     counts = [len(t["boxes"]) for t in targets]
-    if not targets or sum(counts) == 0:
+    if sum(counts) == 0:
         return torch.zeros(0, 6, device=device), torch.zeros(0, 5, device=device)
     boxes = torch.cat([t["boxes"] for t in targets]).to(device=device, dtype=torch.float32)
     labels = torch.cat([t["labels"] for t in targets]).to(device)

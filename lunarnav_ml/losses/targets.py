@@ -42,17 +42,14 @@ def _bad(boxes: torch.Tensor, labels: torch.Tensor, num_classes: int) -> torch.T
 
 
 def _check_values(i: int, boxes: torch.Tensor, labels: torch.Tensor, num_classes: int) -> None:
-    bad = (~torch.isfinite(boxes).all(dim=1)).nonzero()
-    if len(bad):
-        j = int(bad[0])
+    bad = _bad(boxes, labels, num_classes).nonzero()
+    if not len(bad):
+        return
+    j = int(bad[0])
+    if not torch.isfinite(boxes[j]).all():
         raise InputError(f"targets[{i}]['boxes'][{j}] is not finite: {boxes[j].tolist()}")
-    bad = ((boxes[:, 2] <= boxes[:, 0]) | (boxes[:, 3] <= boxes[:, 1])).nonzero()
-    if len(bad):
-        j = int(bad[0])
-        raise InputError(f"targets[{i}]['boxes'][{j}] has non-positive width or height "
-                         f"(xyxy {boxes[j].tolist()})")
-    bad = ((labels < 1) | (labels > num_classes)).nonzero()
-    if len(bad):
-        j = int(bad[0])
+    if labels[j] < 1 or labels[j] > num_classes:
         raise InputError(f"targets[{i}]['labels'][{j}] = {int(labels[j])} is not a category id "
                          f"in 1..{num_classes}")
+    raise InputError(f"targets[{i}]['boxes'][{j}] has non-positive width or height "
+                     f"(xyxy {boxes[j].tolist()})")

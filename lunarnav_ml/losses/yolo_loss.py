@@ -4,6 +4,7 @@ smoothing."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -65,6 +66,7 @@ class YOLOLoss(nn.Module):
         grids = [(x.shape[2], x.shape[3]) for x in raw]
         neighbors = tuple(s >= 2.0 for s in scale_xy)  # reachable neighbour cells are positives
         assigned = assign(gt, anchors, tuple(strides), grids, self.anchor_iou_thresh, neighbors)
+        regions = padded_regions(gt, ign, raw[0].shape[0])  # once for every scale's ignore mask
         balance = LEVEL_BALANCE.get(len(raw), (1.0,) * len(raw))
         zero = raw[0].sum() * 0.0
         box, obj, cls = zero, zero, zero
@@ -72,7 +74,7 @@ class YOLOLoss(nn.Module):
         for level, x in enumerate(raw):
             p = split_raw(x, anchors.shape[1])
             pos = assigned[level]
-            b_l, o_l, c_l = self._level(p, pos, gt, ign, anchors[level], strides[level],
+            b_l, o_l, c_l = self._level(p, pos, regions, anchors[level], strides[level],
                                         scale_xy[level])
             box, cls = box + b_l * len(pos.batch), cls + c_l * len(pos.batch)
             n_box += len(pos.batch)
@@ -89,7 +91,7 @@ class YOLOLoss(nn.Module):
         terms["loss"] = terms["box"] + terms["obj"] + terms["cls"]
         return terms
 
-    def _level(self, p: torch.Tensor, pos: LevelTargets, gt: torch.Tensor, ign: torch.Tensor,
+    def _level(self, p: torch.Tensor, pos: LevelTargets, regions: PaddedRegions,
                anchors: torch.Tensor, stride: int, scale_xy: float
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Mean box (1 - CIoU) and class BCE over positives, and mean objectness BCE.
@@ -97,7 +99,7 @@ class YOLOLoss(nn.Module):
         Shape:
             - p: :math:`(B, A, H, W, 5 + K)` raw fields of one scale.
         """
-        weight = self._negative_weight(p, gt, ign, anchors, stride, scale_xy)
+        weight = self._negative_weight(p, regions, anchors, stride, scale_xy)
         tobj = torch.zeros_like(p[..., 4])
         box = cls = p.sum() * 0.0
         if len(pos.batch):
@@ -122,10 +124,10 @@ class YOLOLoss(nn.Module):
         return target
 
     @torch.no_grad()
-    def _negative_weight(self, p: torch.Tensor, gt: torch.Tensor, ign: torch.Tensor,
-                         anchors: torch.Tensor, stride: int, scale_xy: float) -> torch.Tensor:
+    def _negative_weight(self, p: torch.Tensor, regions: PaddedRegions, anchors: torch.Tensor,
+                         stride: int, scale_xy: float) -> torch.Tensor:
         """1 where a prediction is a plain negative, 0 where it overlaps a ground truth above
-        ``ignore_thresh`` or its centre lies in an ignore region.
+        ``ignore_thresh`` or its centre lies in an ignore region (all images at once).
 
         Shape:
             - Output: :math:`(B, A, H, W)`
@@ -133,19 +135,37 @@ class YOLOLoss(nn.Module):
         boxes = decode_xywh(p[..., :4].float(), anchors, stride, scale_xy)  # (B, A, H, W, 4)
         flat = boxes.reshape(boxes.shape[0], -1, 4)  # (B, N, 4)
         mask = torch.zeros(flat.shape[:2], dtype=torch.bool, device=p.device)
-        if len(gt):  # images side by side, their boxes padded (no loop: one sync on a GPU)
-            g, valid = per_image(gt[:, 0].long(), gt[:, 2:6], len(flat))
+        g, valid = regions.gt, regions.gt_valid
+        if g.shape[1]:
             pred_xyxy = box_convert(flat, "cxcywh", "xyxy")
-            gt_xyxy = box_convert(g, "cxcywh", "xyxy")
-            chunk = max(1, 2**24 // max(1, flat.shape[1] * g.shape[1]))  # bounds the memory
+            chunk = max(1, 2**24 // (flat.shape[1] * g.shape[1]))  # bounds the memory
             for b in range(0, len(flat), chunk):
-                iou = batched_box_iou(pred_xyxy[b:b + chunk], gt_xyxy[b:b + chunk])  # (b, N, G)
+                iou = batched_box_iou(pred_xyxy[b:b + chunk], g[b:b + chunk])  # (b, N, G)
                 iou = iou.masked_fill(~valid[b:b + chunk, None, :], -1.0)
                 mask[b:b + chunk] |= iou.amax(dim=2) > self.ignore_thresh
-        if len(ign):
-            r, valid = per_image(ign[:, 0].long(), ign[:, 1:5], len(flat))
+        r, valid = regions.ignore, regions.ignore_valid
+        if r.shape[1]:
             cx, cy = flat[..., 0:1], flat[..., 1:2]  # (B, N, 1) against (B, 1, Q)
             inside = ((cx >= r[:, None, :, 0]) & (cx <= r[:, None, :, 2])
                       & (cy >= r[:, None, :, 1]) & (cy <= r[:, None, :, 3]) & valid[:, None, :])
             mask |= inside.any(dim=2)
         return (~mask).float().reshape(boxes.shape[:-1])
+
+
+@dataclass
+class PaddedRegions:
+    """A batch's boxes to learn and ignore regions, ``xyxy`` px, grouped by image and padded:
+    :math:`(B, G, 4)` and :math:`(B, Q, 4)`, with :math:`(B, G)`, :math:`(B, Q)` masks of the
+    real rows."""
+
+    gt: torch.Tensor
+    gt_valid: torch.Tensor
+    ignore: torch.Tensor
+    ignore_valid: torch.Tensor
+
+
+def padded_regions(gt: torch.Tensor, ign: torch.Tensor, batch: int) -> PaddedRegions:
+    """:class:`PaddedRegions` of :func:`flatten_targets`' ``gt`` (cxcywh) and ``ign`` rows."""
+    g, g_valid = per_image(gt[:, 0].long(), box_convert(gt[:, 2:6], "cxcywh", "xyxy"), batch)
+    r, r_valid = per_image(ign[:, 0].long(), ign[:, 1:5], batch)
+    return PaddedRegions(g, g_valid, r, r_valid)

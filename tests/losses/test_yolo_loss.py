@@ -168,6 +168,7 @@ def _negative_weight_per_image(boxes, gt, ign, thresh):
 
 
 def test_batched_negative_weight_matches_the_per_image_mask():
+    from lunarnav_ml.losses.yolo_loss import padded_regions
     from lunarnav_ml.models.decode import decode_xywh, split_raw
     gen = torch.Generator().manual_seed(3)
     targets = _random_targets(gen, 8, 128.0)
@@ -177,7 +178,7 @@ def test_batched_negative_weight_matches_the_per_image_mask():
     anchors = torch.tensor([[8.0, 8.0], [24.0, 16.0], [48.0, 40.0]])
     raw = torch.randn(8, 3 * 8, 16, 16, generator=gen)  # one stride-8 level of a 128 px input
     p = split_raw(raw, 3)
-    got = loss._negative_weight(p, gt, ign, anchors, 8, 2.0)
+    got = loss._negative_weight(p, padded_regions(gt, ign, 8), anchors, 8, 2.0)
     boxes = decode_xywh(p[..., :4].float(), anchors, 8, 2.0)
     want = _negative_weight_per_image(boxes, gt, ign, loss.ignore_thresh)
     assert got.shape == (8, 3, 16, 16) and 0 < (got == 0).sum() < got.numel()
