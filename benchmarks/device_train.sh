@@ -15,6 +15,7 @@
 #   find .gpu/site -name '*.so' -exec strip --strip-unneeded {} +
 # The working tree travels too: it must stay under the device's 64 MiB with that folder.
 # Session 30 (H200, BUDGET_S=560): rendering 168 s, training 5 min 17 s, 878 steps.
+# Session 31 (H200, BUDGET_S=570, the loader and loss fixes): 1,597 steps in 4 min 58 s.
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
 # PY (default python3), EXTRA (more `train.py fit` arguments, e.g. for a CPU smoke run).
@@ -74,6 +75,13 @@ log "smoke run on the validation renders while the others render"
     --trainer.check_val_every_n_epoch 1 --trainer.enable_progress_bar false ${EXTRA:-} \
     >"$OUT/smoke.txt" 2>&1 || fail "smoke run failed" "$OUT/smoke.txt"
 rm -rf "$RUN"
+if [ -z "${EXTRA:-}" ]; then  # the GPU is idle while the others render: its model-only speed
+    log "model-only training speed on the GPU (no loader), batch 64 and 128"
+    for b in 64 128; do
+        "$PY" benchmarks/bench_train.py --device cuda --presets small-relu --size 384 \
+            --batch $b --precision bf16 --steps 30 --warmup 10 2>&1 | tee -a "$OUT/bench_cuda.txt"
+    done
+fi
 wait $p1 && wait $p2 && wait $p3 || fail "rendering failed" "$DATA/train.log"
 log "rendered: $(du -sh "$DATA" | cut -f1)"
 
