@@ -68,8 +68,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("outputs/dev_rim_offset"))
     p.add_argument("--ellipse-source", default="fit", choices=("fit", "label", "box"))
     p.add_argument("--rows-only", action="store_true", help="reuse the rows in --out")
+    p.add_argument("--crest-match", choices=("on", "off"), default=None,
+                   help="LifterConfig.crest_match (default: the lifter's default)")
     args = p.parse_args(argv)
-    zero = LifterConfig(rim_offset=0.0, rim_offset_m=0.0)
+    match = {} if args.crest_match is None else {"crest_match": args.crest_match == "on"}
+    zero = LifterConfig(rim_offset=0.0, rim_offset_m=0.0, **match)
     rows: list[dict[str, Any]] = []
     try:
         for k, gt in enumerate(args.gt):
@@ -90,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
     write_json(args.out / "rim_offset.json", {
         "rim_offset": slope, "rim_offset_m": icpt, "n_lifted": len(need),
         "per_diameter": {f"{2 * r:g}": {"n": n, "median_m": med} for r, (n, med) in per_r.items()},
-        "sets": [str(g) for g in args.gt], "ellipse_source": args.ellipse_source})
+        "sets": [str(g) for g in args.gt], "ellipse_source": args.ellipse_source,
+        "crest_match": zero.crest_match})
     _plot(args.out / "rim_offset.png", radius, near, need, icpt, slope)
     return 0
 

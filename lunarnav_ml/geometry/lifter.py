@@ -10,7 +10,8 @@ Default method, "tangent" (no terrain model):
    move to the visible crest, the occluding edge where disparity jumps from the far wall to
    the near rim (within a few rows), and get a disparity each, extrapolated along the image
    column from the rows just below that edge (toward the camera: the side continuous with the
-   crest, outside the matcher's smearing of the depth edge). The near-side ray at bearing theta
+   crest, outside the matcher's smearing of the depth edge; with ``crest_match`` and the image
+   pair, from one-row windows matched on those rows instead). The near-side ray at bearing theta
    meets the circle at horizontal range rho k(theta) with k known from the angles, less the
    edge's offset in front of a rounded crest (``rim_offset`` of the radius plus
    ``rim_offset_m``), so
@@ -39,8 +40,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lunarnav_ml.errors import InputError
+from lunarnav_ml.geometry._checks import as_image
 from lunarnav_ml.geometry.ellipse import Ellipse
 from lunarnav_ml.geometry.frames import StereoRig
+from lunarnav_ml.geometry.stereo import match_strips
 
 
 @dataclass(frozen=True)
@@ -133,6 +136,18 @@ class LifterConfig:
         max_radial_rms: largest RMS radial residual of the rim circle, fraction of its radius.
         ellipse_sigma_px: 1-sigma of the ellipse center and semi-axes, px.
         rim_height_sigma_m: 1-sigma floor on the rim height (model error), m.
+        crest_match: "tangent", when :func:`lift_crater` is given the rectified pair: each
+            near-rim sample's crest disparity is measured again from the images with windows
+            one row high (``2 match_half_width + 1`` px wide) matched along the epipolar line
+            (:func:`match_strips`) on the rows just below the crest, then carried to the crest
+            row like the matcher's values. A block matcher's square windows and smoothness
+            terms mix the far wall into the crest's first rows; a one-row window there sees
+            the near side only. Rows start far enough below the crest that the window's ends
+            stay under the rim where it slopes in the image; samples with fewer than 3
+            matched rows keep the matcher's value.
+        match_half_width: window half width, px.
+        match_half_height: window half height, px (0: one row).
+        match_rows: first and last row offsets below the crest that are matched.
     """
 
     method: str = "tangent"
@@ -155,6 +170,10 @@ class LifterConfig:
     max_radial_rms: float = 0.1
     ellipse_sigma_px: float = 0.5
     rim_height_sigma_m: float = 0.02
+    crest_match: bool = False
+    match_half_width: int = 7
+    match_half_height: int = 0
+    match_rows: tuple[int, int] = (1, 6)
 
     def residual_limit_px(self, rim_disparity_px: float) -> float:
         """The "tangent" residual gate for a rim of this median disparity, px."""
@@ -175,6 +194,7 @@ def lift_crater(
     disparity: np.ndarray,
     rig: StereoRig,
     config: LifterConfig | None = None,
+    pair: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> LiftResult:
     """Lift an image rim ellipse to a crater center and diameter in the rover frame.
 
@@ -183,23 +203,28 @@ def lift_crater(
         disparity: left-reference disparity, px; NaN or <= 0 marks invalid pixels.
         rig: the rectified rig and its pose on the rover.
         config: thresholds and noise levels (defaults: :class:`LifterConfig`).
+        pair: the rectified (left, right) images the disparity came from (gray or RGB); with
+            ``config.crest_match`` the rim's crest disparities are measured again from them.
 
     Returns:
         LiftResult; ``ok`` False with a ``reason`` for rejected or impossible fits.
 
     Raises:
-        InputError: ``disparity`` is not a 2-D array.
+        InputError: ``disparity`` is not a 2-D array, or ``pair`` is not two gray images of
+            its shape.
 
     Shape:
         disparity: (H, W).
     """
     cfg = config or LifterConfig()
     disp = _check_disparity(disparity)
+    if pair is not None:
+        pair = _check_pair(pair, disp.shape)
     ell = ellipse.to_array()
     if not (np.all(np.isfinite(ell)) and ellipse.a > 0 and ellipse.b > 0):
         return LiftResult(False, "invalid_ellipse")
     if cfg.method == "tangent":
-        return _lift_tangent(ellipse, disp, rig, cfg)
+        return _lift_tangent(ellipse, disp, rig, cfg, pair)
     if cfg.method != "plane":
         raise InputError(f"config.method: expected 'tangent' or 'plane', got {cfg.method!r}")
     plane = _fit_ground(disp, ellipse, rig, cfg)
@@ -230,6 +255,18 @@ def _check_disparity(disparity: np.ndarray) -> np.ndarray:
     if d.ndim != 2:
         raise InputError(f"disparity: expected shape (H, W), got {tuple(d.shape)}")
     return np.where(d > 0, d, np.nan)  # NaN, inf-free: non-positive and NaN are invalid
+
+
+def _check_pair(pair: tuple[np.ndarray, np.ndarray],
+                shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    if len(pair) != 2:
+        raise InputError(f"pair: expected (left, right) images, got {len(pair)} item(s)")
+    out = tuple(as_image(f"pair: {name} image", im) for name, im in zip(("left", "right"), pair))
+    for name, im in zip(("left", "right"), out):
+        if im.shape != shape:
+            raise InputError(f"pair: {name} image: expected the disparity's shape {shape}, "
+                             f"got {im.shape}")
+    return out[0], out[1]
 
 
 def _ellipse_mask(shape: tuple[int, int], ell: Ellipse, scale: float) -> np.ndarray:
@@ -368,6 +405,36 @@ def _crest_row(column: np.ndarray, v: float, snap_px: int, min_jump: float) -> f
     return float(lo + idx[k + 1]) - 0.5
 
 
+def _match_crest(pair: tuple[np.ndarray, np.ndarray], us: np.ndarray, crest: np.ndarray,
+                 d: np.ndarray, tangent: np.ndarray, disp: np.ndarray,
+                 cfg: LifterConfig) -> np.ndarray:
+    """Crest disparities re-measured with one-row windows matched below the occluding edge
+    (:func:`match_strips`), extrapolated to the crest row like the matcher's; samples whose
+    rows are too few keep the matcher's value."""
+    hw = cfg.match_half_width
+    lo, hi = cfg.match_rows
+    # the rim crosses a window's ends |dv/du| * hw rows off its centre row: start below that
+    margin = np.ceil(np.abs(tangent[:, 1]) * hw / np.maximum(np.abs(tangent[:, 0]), 1e-9))
+    first = np.floor(crest) + np.maximum(lo, margin + 1) + cfg.match_half_height
+    offs = np.arange(hi - lo + 1)
+    rows = (first[:, None] + offs[None, :]).astype(np.int64)  # (N, n)
+    cols = np.broadcast_to(np.round(us).astype(np.int64)[:, None], rows.shape)
+    h, w = disp.shape
+    inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w) & (margin[:, None] < hi)
+    # every row's search is centred on the matcher's crest value, not on the matcher's value at
+    # that row: next to the edge that one may be smeared toward the far wall
+    prior = np.where(inside, d[:, None], np.nan)
+    m = match_strips(pair[0], pair[1], cols.ravel(), rows.ravel(), prior.ravel(),
+                     half_width=hw, half_height=cfg.match_half_height).reshape(rows.shape)
+    out = d.copy()
+    for i in range(len(d)):
+        ok = np.isfinite(m[i])
+        if ok.sum() >= 3 and np.isfinite(d[i]):
+            slope, icpt = np.polyfit(rows[i, ok].astype(float), m[i, ok], 1)
+            out[i] = slope * crest[i] + icpt
+    return out
+
+
 def _fit_rim_plane(
     disp: np.ndarray, ell: Ellipse, rig: StereoRig, plane: _Plane, cfg: LifterConfig
 ) -> tuple[float, float, int, float] | str:
@@ -469,7 +536,8 @@ def _covariance(
     return jac @ cov_in @ jac.T
 
 
-def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterConfig) -> LiftResult:
+def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterConfig,
+                  pair: tuple[np.ndarray, np.ndarray] | None = None) -> LiftResult:
     """Bearings from the ellipse, scale from stereo (see the module docstring, "tangent")."""
     pts = ell.points(cfg.n_rim)
     q = rig.rays(pts)
@@ -484,6 +552,9 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
     # the search stays within half the ellipse's height: clear of the far rim, and of nearer
     # rocks and rims below a small crater
     d, rows = _rim_disparities(disp, pts[near], snap_px=min(cfg.snap_px, max(2, int(0.5 * h))))
+    if pair is not None and cfg.crest_match:
+        tangent = np.roll(pts, -1, axis=0) - np.roll(pts, 1, axis=0)
+        d = _match_crest(pair, pts[near, 0], rows, d, tangent[near], disp, cfg)
     ok = np.isfinite(d) & (d > 0)
     if ok.sum() < cfg.min_rim:
         return LiftResult(False, "insufficient_rim_disparity", n_rim=int(ok.sum()))

@@ -173,6 +173,7 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
     left = _read_gray(root, im["file_name"])
     rig = StereoRig.from_camera_record(im["camera"])
     t0 = time.perf_counter()
+    right = None
     if cfg.disparity == "rendered":  # the right image is not needed
         disp = read_disparity(root, im)
     else:
@@ -182,7 +183,7 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
     stereo_s = time.perf_counter() - t0
     rows = []
     for ann in anns:
-        row = _eval_crater(left, disp, rig, ann, _box_for(ann, dets), cfg)
+        row = _eval_crater(left, right, disp, rig, ann, _box_for(ann, dets), cfg)
         row.update(image_id=im["id"], stereo_s=stereo_s,
                    sun_zenith_deg=im.get("sun_zenith_deg"), sun_azimuth_deg=im.get("sun_azimuth_deg"))
         rows.append(row)
@@ -220,8 +221,8 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     return inter / union if union > 0 else 0.0
 
 
-def _eval_crater(left: np.ndarray, disp: np.ndarray, rig: StereoRig, ann: dict[str, Any],
-                 box: np.ndarray | None, cfg: _Settings) -> dict[str, Any]:
+def _eval_crater(left: np.ndarray, right: np.ndarray | None, disp: np.ndarray, rig: StereoRig,
+                 ann: dict[str, Any], box: np.ndarray | None, cfg: _Settings) -> dict[str, Any]:
     """Fit, lift and score one labelled crater."""
     diam = float(ann["diameter_m"])
     truth = camera_to_rover(ann["center_cam_m"], rig.height_m, rig.pitch_deg, rig.roll_deg)[0]
@@ -235,7 +236,7 @@ def _eval_crater(left: np.ndarray, disp: np.ndarray, rig: StereoRig, ann: dict[s
     t1 = time.perf_counter()
     if ellipse is None:
         return {**row, "reason": f"ellipse:{fit_reason}", "fit_s": t1 - t0}
-    res = lift_crater(ellipse, disp, rig, cfg.lifter)
+    res = lift_crater(ellipse, disp, rig, cfg.lifter, None if right is None else (left, right))
     t2 = time.perf_counter()
     row.update(fit_s=t1 - t0, lift_s=t2 - t1, ellipse=ellipse.to_array().tolist(),
                fit_quality=quality, reason=res.reason if res.ok else f"lift:{res.reason}",

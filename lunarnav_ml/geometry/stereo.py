@@ -229,3 +229,56 @@ class SGBMStereo:
             lr_max_diff_px=self.lr_max_diff_px, mode=self.mode, rows=rows,
             penalties=self.penalties,
         )
+
+
+def match_strips(
+    left: np.ndarray, right: np.ndarray, cols: np.ndarray, rows: np.ndarray, d0: np.ndarray,
+    *, half_width: int = 7, half_height: int = 0, search_px: int = 3, min_score: float = 0.6,
+) -> np.ndarray:
+    """Disparity at chosen pixels from a short window matched along the epipolar line.
+
+    Each left-image window (``2 half_height + 1`` rows by ``2 half_width + 1`` columns, centred
+    on (col, row)) is matched by zero-mean normalized cross-correlation
+    (``cv2.matchTemplate``, TM_CCOEFF_NORMED) against the right image's same rows, at
+    disparities within ``search_px`` of ``d0``; the peak is refined to subpixel by a parabola
+    through it and its neighbours. A window of one row does not reach across a horizontal
+    depth edge just above or below it, where a block matcher's square window and smoothness
+    terms mix both sides (the near rim of a crater seen from a rover).
+
+    Args:
+        left, right: rectified gray images (H, W), uint8 or float.
+        cols, rows: (N,) integer pixel of each window's centre, left image.
+        d0: (N,) prior disparity each search is centred on, px; NaN skips the pixel.
+        half_width, half_height: window half sizes, px.
+        search_px: disparities searched each side of round(d0), px.
+        min_score: correlation peaks below this give NaN.
+
+    Returns:
+        (N,) float64 disparity, px; NaN where the window leaves the image, the peak is weak
+        or lies at the end of the search range, or the window has no texture.
+    """
+    lf = np.asarray(left, dtype=np.float32)
+    rf = np.asarray(right, dtype=np.float32)
+    h, w = lf.shape
+    out = np.full(len(cols), np.nan)
+    for i, (u, v, d) in enumerate(zip(cols, rows, d0)):
+        if not np.isfinite(d):
+            continue
+        base = int(round(d))
+        r0, r1 = int(v) - half_height, int(v) + half_height + 1
+        x0 = int(u) - base - search_px - half_width
+        x1 = int(u) - base + search_px + half_width + 1
+        if r0 < 0 or r1 > h or x0 < 0 or x1 > w or int(u) + half_width + 1 > w:
+            continue
+        tmpl = lf[r0:r1, int(u) - half_width : int(u) + half_width + 1]
+        if float(tmpl.std()) < 1e-3:
+            continue
+        score = cv2.matchTemplate(rf[r0:r1, x0:x1], tmpl, cv2.TM_CCOEFF_NORMED)[0]
+        k = int(np.argmax(score))
+        if score[k] < min_score or k == 0 or k == len(score) - 1:
+            continue
+        a, b, c = score[k - 1], score[k], score[k + 1]
+        denom = a - 2 * b + c
+        sub = 0.5 * (a - c) / denom if denom < 0 else 0.0
+        out[i] = base + search_px - (k + sub)
+    return out

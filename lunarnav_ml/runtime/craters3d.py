@@ -102,13 +102,15 @@ class StereoCraterLocalizer:
         return det["boxes"][mine], det["scores"][mine]
 
     def localize_box(self, left: np.ndarray, disparity: np.ndarray, box: np.ndarray,
-                     score: float) -> Crater3D:
-        """Ellipse and 3D lift of one crater box (xyxy px)."""
+                     score: float, right: np.ndarray | None = None) -> Crater3D:
+        """Ellipse and 3D lift of one crater box (xyxy px); with the ``right`` image the lifter
+        can measure the rim's crest from the pair (``LifterConfig.crest_match``)."""
         xywh = np.array([box[0], box[1], box[2] - box[0], box[3] - box[1]], dtype=np.float64)
         fit = self.fitter(left, xywh)
         if not fit.ok:
             return Crater3D(box, score, reason=f"ellipse:{fit.reason}")
-        lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter)
+        lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter,
+                           None if right is None else (left, right))
         return Crater3D(box, score, fit.ellipse, fit.quality, lift,
                         "ok" if lift.ok else f"lift:{lift.reason}")
 
@@ -131,4 +133,5 @@ class StereoCraterLocalizer:
         if len(boxes) == 0:
             return []
         disparity = self.stereo(left, right).disparity
-        return [self.localize_box(left, disparity, b, float(s)) for b, s in zip(boxes, scores)]
+        return [self.localize_box(left, disparity, b, float(s), right)
+                for b, s in zip(boxes, scores)]

@@ -3,8 +3,16 @@ import pytest
 
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.geometry.ellipse import Ellipse, fit_crater_ellipse
-from lunarnav_ml.geometry.lifter import LifterConfig, _crest_row, _rim_disparities, lift_crater
+from lunarnav_ml.geometry.lifter import (
+    LifterConfig,
+    _crest_row,
+    _match_crest,
+    _rim_disparities,
+    lift_crater,
+)
 from lunarnav_ml.geometry.stereo import SGBMStereo
+
+from .test_stereo import _texture, _warp
 
 # the helper's rims are sharp crests: the occluding edge is the crest itself
 SHARP = {"rim_offset": 0.0, "rim_offset_m": 0.0}
@@ -110,6 +118,15 @@ def test_lifter_bad_inputs(crater_scene):
         lift_crater(crater_scene.ellipse, np.zeros(10), crater_scene.rig)
     with pytest.raises(InputError, match="method"):
         lift_crater(crater_scene.ellipse, np.ones((5, 5)), crater_scene.rig, LifterConfig(method="x"))
+    gray = np.zeros((5, 5), np.uint8)
+    with pytest.raises(InputError, match="pair: right image: expected the disparity's shape"):
+        lift_crater(crater_scene.ellipse, np.ones((5, 5)), crater_scene.rig, None,
+                    (gray, np.zeros((6, 5, 3), np.uint8)))
+    with pytest.raises(InputError, match="pair: left image: expected shape"):
+        lift_crater(crater_scene.ellipse, np.ones((5, 5)), crater_scene.rig, None,
+                    (np.zeros((5, 5, 2)), gray))
+    with pytest.raises(InputError, match="pair: expected"):
+        lift_crater(crater_scene.ellipse, np.ones((5, 5)), crater_scene.rig, None, (gray,))
 
 
 def test_crest_row_snaps_to_the_occluding_edge():
@@ -188,3 +205,40 @@ def test_rim_disparity_crest_fraction_and_the_relative_gate(crater_scene):
     relative = lift_crater(sc.ellipse, noisy, sc.rig, LifterConfig(max_rim_residual_rel=0.2))
     assert relative.ok
     assert relative.rim_residual_px == strict.rim_residual_px
+
+
+def test_crest_match_reads_the_crest_where_the_matcher_smeared_it():
+    """Far wall (5 px) above row 50, the crest and a slanted flank (9 px + 0.1 a row) below;
+    the given disparity map has the far wall smeared 4 rows into the flank, as a block matcher
+    does at an occluding edge. One-row windows matched in the images read the flank's own
+    rows, and the line through them meets the crest's row at the true 8.95 px."""
+    left = _texture(120, 400, seed=5)
+    rows = np.arange(120, dtype=float)[:, None]
+    truth = np.where(rows < 50, 5.0, 9.0 + 0.1 * (rows - 50)) * np.ones((1, 400))
+    right = _warp(left, truth)
+    smeared = truth.copy()
+    smeared[50:54] = 6.5
+    us = np.arange(80.0, 320.0, 12.0)
+    crest = np.full(len(us), 49.5)
+    d = np.full(len(us), 8.3)  # what the smeared map extrapolates to, too low
+    flat = np.tile([1.0, 0.0], (len(us), 1))  # the rim runs along the rows here
+    cfg = LifterConfig(crest_match=True)
+    got = _match_crest((left.astype(np.uint8), right), us, crest, d, flat, smeared, cfg)
+    np.testing.assert_allclose(got, 8.95, atol=0.15)  # per sample; the smeared map: 8.3
+    assert np.median(got) == pytest.approx(8.95, abs=0.03)
+    # where the rim is steep in the image the windows would cross it: the matcher's value stays
+    steep = np.tile([1.0, 3.0], (len(us), 1))
+    kept = _match_crest((left.astype(np.uint8), right), us, crest, d, steep, smeared, cfg)
+    np.testing.assert_array_equal(kept, d)
+
+
+def test_crest_match_on_a_rendered_crater(crater_scene, sgbm_disparity):
+    sc = crater_scene
+    fit = fit_crater_ellipse(sc.left, sc.box)
+    pair = (sc.left, sc.right)
+    res = lift_crater(fit.ellipse, sgbm_disparity, sc.rig, LifterConfig(crest_match=True), pair)
+    assert res.ok, res.reason
+    assert np.hypot(*(res.center_m[:2] - sc.center_rover[:2])) < 0.3
+    assert res.diameter_m == pytest.approx(sc.crater.diameter, abs=0.35)
+    off = lift_crater(fit.ellipse, sgbm_disparity, sc.rig, LifterConfig(crest_match=False), pair)
+    assert res.center_m[0] != off.center_m[0]  # the images were used

@@ -8,6 +8,7 @@ from lunarnav_ml.geometry.stereo import (
     compute_disparity,
     disparity_to_depth,
     disparity_to_points,
+    match_strips,
 )
 
 
@@ -53,6 +54,30 @@ def test_sgbm_recovers_a_slanted_plane_without_bias():
     assert np.nanpercentile(np.abs(err), 90) < 0.35
     assert res.disparity.dtype == np.float32 and res.valid.shape == left.shape
     np.testing.assert_array_equal(np.isfinite(res.disparity), res.valid)
+
+
+def test_strip_matcher_reads_each_side_of_a_horizontal_depth_edge():
+    """One-row windows right below a depth edge read the near side's disparity; SGBM's square
+    windows and smoothness terms mix the far side in there."""
+    left = _texture(120, 400, seed=3)
+    truth = np.where(np.arange(120)[:, None] < 60, 8.0, 14.3) * np.ones((1, 400))
+    right = _warp(left, truth)
+    cols = np.repeat(np.arange(60, 340, 20), 4)
+    rows = np.tile([60, 61, 62, 63], len(cols) // 4)  # the first rows of the near side
+    prior = np.full(len(cols), 12.0)  # 2.3 px off: the search finds the peak
+    got = match_strips(left.astype(np.uint8), right, cols, rows, prior, half_width=7)
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, 14.3, atol=0.15)
+    far = match_strips(left.astype(np.uint8), right, cols, rows - 5, np.full(len(cols), 9.0))
+    np.testing.assert_allclose(far, 8.0, atol=0.2)
+    # a prior too far off puts the peak at the end of the search: NaN, not a wrong disparity
+    assert np.isnan(match_strips(left.astype(np.uint8), right, cols[:3], rows[:3],
+                                 np.full(3, 4.0), search_px=3)).all()
+    # windows outside the image, NaN priors and flat windows give NaN
+    flat = np.full((40, 100), 90, np.uint8)
+    assert np.isnan(match_strips(flat, flat, np.array([50]), np.array([20]), np.array([5.0])))[0]
+    assert np.isnan(match_strips(left, right, np.array([3, 50]), np.array([10, 10]),
+                                 np.array([8.0, np.nan]))).all()
 
 
 def test_penalties_reach_the_matcher():
