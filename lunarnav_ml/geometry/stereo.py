@@ -264,7 +264,7 @@ def match_strips(
     for i, (u, v, d) in enumerate(zip(cols, rows, d0)):
         if not np.isfinite(d):
             continue
-        base = int(round(d))
+        base = round(float(d))
         r0, r1 = int(v) - half_height, int(v) + half_height + 1
         x0 = int(u) - base - search_px - half_width
         x1 = int(u) - base + search_px + half_width + 1
