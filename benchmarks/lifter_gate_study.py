@@ -10,6 +10,8 @@ Pd(3D) and the lifted count. Use a development render, never the evaluation set:
     .venv/bin/python benchmarks/lifter_gate_study.py /tmp/dev_ps/annotations.shard-0-of-7.json \\
         --out outputs/dev_gate_study
 
+Several sets pool their rows (each set's report in ``--out/<annotations file stem>``).
+
 ``--rows-only`` re-reads ``geometry_craters.json`` from ``--out`` instead of running again.
 """
 
@@ -27,7 +29,8 @@ from lunarnav_ml.geometry.report import geometry_report, summarize
 
 # (absolute px, fraction of the rim disparity, least crest fraction)
 GATES = [(1e9, 0.0, 0.0), (1.5, 0.0, 0.0), (1.0, 0.05, 0.0), (1.5, 0.08, 0.0), (1.5, 0.10, 0.0),
-         (1.5, 0.12, 0.0), (1.5, 0.15, 0.0), (1.5, 0.20, 0.0), (1.5, 0.0, 0.3), (1.5, 0.0, 0.5)]
+         (1.5, 0.12, 0.0), (1.5, 0.15, 0.0), (1.5, 0.20, 0.0), (1.5, 0.25, 0.0), (1.5, 0.0, 0.3),
+         (1.5, 0.0, 0.5)]
 DIAMETERS = ("5.0", "10.0", "15.0", "20.0")
 
 
@@ -51,30 +54,40 @@ def _per_d(metrics: dict[str, Any], key: str, window: str) -> str:
     return " / ".join("-" if v is None else f"{v:.2f}" for v in vals)
 
 
+def _mean_all_d(metrics: dict[str, Any]) -> float:
+    vals = [v["range_15_20"].get("center_3sigma_m") for v in metrics["per_diameter"].values()]
+    vals = [v for v in vals if v is not None]
+    return sum(vals) / len(vals) if vals else float("nan")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("gt", type=Path, help="development stereo set (annotations file or folder)")
+    p.add_argument("gt", type=Path, nargs="+",
+                   help="development stereo sets (annotations files); rows go to --out/<file stem>")
     p.add_argument("--out", type=Path, default=Path("outputs/dev_gate_study"))
     p.add_argument("--ellipse-source", default="fit", choices=("fit", "label", "box"))
     p.add_argument("--rows-only", action="store_true", help="reuse the rows in --out")
     args = p.parse_args(argv)
     try:
-        if not args.rows_only:
-            geometry_report(args.gt, args.out, ellipse_source=args.ellipse_source,
-                            lifter=LifterConfig(max_rim_residual_px=1e9), plots=False)
-        rows = load_json(args.out / "geometry_craters.json", "geometry report rows")
+        rows = []
+        for gt in args.gt:
+            part = args.out / gt.stem
+            if not args.rows_only:
+                geometry_report(gt, part, ellipse_source=args.ellipse_source,
+                                lifter=LifterConfig(max_rim_residual_px=1e9), plots=False)
+            rows += load_json(part / "geometry_craters.json", "geometry report rows")
     except LunarNavError as err:
         print(f"lifter_gate_study: error: {err}", file=sys.stderr)
         return 2
     print("gate (abs px, rel, crest) | 3s centre 15-20 m | 3s centre all | 3s diameter 15-20 m"
-          " | Pd(3D) | lifted | Pd(3D) at 5 / 6 / 7 m")
+          " | Pd(3D) | lifted | Pd(3D) at 5 / 6 / 7 m | 3s centre 15-20 m, mean of every D")
     for gate in GATES:
         m = summarize(apply_gate(rows, *gate))
         near = " / ".join(f"{m['pd_3d_vs_range'].get(str(k)) or 0:.2f}" for k in (5, 6, 7))
         print(f"{gate} | {_per_d(m, 'center_3sigma_m', 'range_15_20')} | "
               f"{_per_d(m, 'center_3sigma_m', 'all_ranges')} | "
               f"{_per_d(m, 'diameter_3sigma_m', 'range_15_20')} | {m['overall']['pd_3d']:.3f} | "
-              f"{m['overall']['n_lifted']} | {near}")
+              f"{m['overall']['n_lifted']} | {near} | {_mean_all_d(m):.2f}")
     return 0
 
 
