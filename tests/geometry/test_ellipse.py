@@ -155,3 +155,20 @@ def test_fitter_keeps_a_well_supported_fit(crater_scene_side_sun):
     fit = EllipseFitter()(sc.left, sc.box)
     assert fit.reason == "ok"
     np.testing.assert_allclose(fit.ellipse.to_array(), own.ellipse.to_array())
+
+
+def test_fitter_falls_back_where_the_fit_is_wider_or_narrower_than_the_box(crater_scene_side_sun):
+    """The box carries the rim's lateral extent (it sets the lifted diameter): a fit more than
+    ``max_width_mismatch`` wider or narrower than it gives way to the box."""
+    sc = crater_scene_side_sun
+    own = EllipseFitter()(sc.left, sc.box)
+    assert own.reason == "ok"
+    ratio = own.ellipse.bbox()[2] / sc.box[2]
+    assert abs(ratio - 1) <= EllipseFitter().max_width_mismatch
+    # a stricter rule than this fit meets falls back; 0 turns the rule off
+    assert abs(ratio - 1) > 0.002  # (a fit is never exactly the box's width)
+    strict = EllipseFitter(max_width_mismatch=abs(ratio - 1) / 2)(sc.left, sc.box)
+    assert strict.reason == "box_fallback"
+    np.testing.assert_allclose(strict.ellipse.to_array(), Ellipse.from_box(sc.box).to_array())
+    assert strict.quality == own.quality
+    assert EllipseFitter(max_width_mismatch=0.0)(sc.left, sc.box).reason == "ok"
