@@ -18,6 +18,7 @@ Several sets pool their rows (each set's report in ``--out/<annotations file ste
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Any
@@ -60,6 +61,19 @@ def _mean_all_d(metrics: dict[str, Any]) -> float:
     return sum(vals) / len(vals) if vals else float("nan")
 
 
+def _lifter_settings(items: list[str]) -> dict[str, Any]:
+    fields = {f.name: f.type for f in dataclasses.fields(LifterConfig)}
+    out: dict[str, Any] = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in fields or not value:
+            raise LunarNavError(f"--lifter: expected FIELD=VALUE with a LifterConfig field, "
+                                f"got {item!r}")
+        out[name] = {"int": int, "float": float, "bool": lambda v: v == "true"}.get(
+            str(fields[name]), str)(value)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("gt", type=Path, nargs="+",
@@ -67,14 +81,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("outputs/dev_gate_study"))
     p.add_argument("--ellipse-source", default="fit", choices=("fit", "label", "box"))
     p.add_argument("--rows-only", action="store_true", help="reuse the rows in --out")
+    p.add_argument("--lifter", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="other LifterConfig settings for the run, e.g. snap_px=12")
     args = p.parse_args(argv)
     try:
+        settings = _lifter_settings(args.lifter)
         rows = []
         for gt in args.gt:
             part = args.out / gt.stem
             if not args.rows_only:
                 geometry_report(gt, part, ellipse_source=args.ellipse_source,
-                                lifter=LifterConfig(max_rim_residual_px=1e9), plots=False)
+                                lifter=LifterConfig(**settings, max_rim_residual_px=1e9),
+                                plots=False)
             rows += load_json(part / "geometry_craters.json", "geometry report rows")
     except LunarNavError as err:
         print(f"lifter_gate_study: error: {err}", file=sys.stderr)
