@@ -69,8 +69,12 @@ def _lifter_settings(items: list[str]) -> dict[str, Any]:
         if name not in fields or not value:
             raise LunarNavError(f"--lifter: expected FIELD=VALUE with a LifterConfig field, "
                                 f"got {item!r}")
-        out[name] = {"int": int, "float": float, "bool": lambda v: v == "true"}.get(
-            str(fields[name]), str)(value)
+        kind = str(fields[name])
+        try:
+            out[name] = {"int": int, "float": float, "bool": lambda v: v == "true"}.get(
+                kind, str)(value)
+        except ValueError:
+            raise LunarNavError(f"--lifter: {name} expects a {kind}, got {value!r}") from None
     return out
 
 
