@@ -74,7 +74,7 @@ def _lifter_settings(items: list[str]) -> dict[str, Any]:
             out[name] = {"int": int, "float": float, "bool": lambda v: v == "true"}.get(
                 kind, str)(value)
         except ValueError:
-            raise LunarNavError(f"--lifter: {name} expects a {kind}, got {value!r}") from None
+            raise LunarNavError(f"--lifter: {name} expects type {kind}, got {value!r}") from None
     return out
 
 

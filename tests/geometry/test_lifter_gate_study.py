@@ -25,7 +25,7 @@ def test_unknown_or_empty_lifter_settings_are_refused(item):
 
 
 def test_a_setting_of_the_wrong_type_is_refused():
-    with pytest.raises(LunarNavError, match="snap_px expects a int, got 'x'"):
+    with pytest.raises(LunarNavError, match="snap_px expects type int, got 'x'"):
         study._lifter_settings(["snap_px=x"])
 
 
