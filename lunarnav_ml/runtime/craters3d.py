@@ -15,6 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.geometry._checks import as_image
 from lunarnav_ml.geometry.ellipse import Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig
 from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater
@@ -102,15 +103,15 @@ class StereoCraterLocalizer:
         return det["boxes"][mine], det["scores"][mine]
 
     def localize_box(self, left: np.ndarray, disparity: np.ndarray, box: np.ndarray,
-                     score: float, right: np.ndarray | None = None) -> Crater3D:
-        """Ellipse and 3D lift of one crater box (xyxy px); with the ``right`` image the lifter
-        can measure the rim's crest from the pair (``LifterConfig.crest_match``)."""
+                     score: float, pair: tuple[np.ndarray, np.ndarray] | None = None) -> Crater3D:
+        """Ellipse and 3D lift of one crater box (xyxy px); with the rectified ``pair`` (gray
+        or RGB) the lifter measures the rim's crest from the images (``LifterConfig.crest_match``).
+        """
         xywh = np.array([box[0], box[1], box[2] - box[0], box[3] - box[1]], dtype=np.float64)
         fit = self.fitter(left, xywh)
         if not fit.ok:
             return Crater3D(box, score, reason=f"ellipse:{fit.reason}")
-        lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter,
-                           None if right is None else (left, right))
+        lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter, pair)
         return Crater3D(box, score, fit.ellipse, fit.quality, lift,
                         "ok" if lift.ok else f"lift:{lift.reason}")
 
@@ -133,5 +134,6 @@ class StereoCraterLocalizer:
         if len(boxes) == 0:
             return []
         disparity = self.stereo(left, right).disparity
-        return [self.localize_box(left, disparity, b, float(s), right)
+        pair = (as_image("left", left), as_image("right", right))  # gray once, not per crater
+        return [self.localize_box(left, disparity, b, float(s), pair)
                 for b, s in zip(boxes, scores)]

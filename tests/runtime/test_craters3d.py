@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.geometry.lifter import LifterConfig
 from lunarnav_ml.runtime import OnnxDetector, StereoCraterLocalizer
 from tests.geometry.geometry_scene import render_crater_scene
 
@@ -43,6 +44,22 @@ def test_crater_lifted_to_its_true_center(scene):
     assert np.hypot(*(c.center_m[:2] - scene.center_rover[:2])) < max(1.0, 0.25 * d)
     assert abs(c.diameter_m - d) < 0.25 * d
     assert c.ellipse is not None and 0 < c.ellipse_quality <= 1
+
+
+def test_the_lifter_reads_the_crest_from_the_pair(scene):
+    """The localizer hands the lifter the image pair (LifterConfig.crest_match); without the
+    pair, or with the match off, the lift is the matcher's alone."""
+    on = StereoCraterLocalizer(TruthDetector(scene.box), scene.rig)(rgb(scene.left),
+                                                                    rgb(scene.right))[0]
+    off = StereoCraterLocalizer(TruthDetector(scene.box), scene.rig,
+                                lifter=LifterConfig(crest_match=False))
+    plain = off(rgb(scene.left), rgb(scene.right))[0]
+    assert on.ok and plain.ok
+    assert on.center_m[0] != plain.center_m[0]
+    box = TruthDetector(scene.box).boxes[0]
+    disp = off.stereo(rgb(scene.left), rgb(scene.right)).disparity
+    no_pair = off.localize_box(rgb(scene.left), disp, box, 0.9)
+    np.testing.assert_array_equal(no_pair.center_m, plain.center_m)
 
 
 def test_runs_with_the_onnx_detector(scene, onnx_path):
