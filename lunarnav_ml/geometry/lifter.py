@@ -218,8 +218,8 @@ def lift_crater(
         LiftResult; ``ok`` False with a ``reason`` for rejected or impossible fits.
 
     Raises:
-        InputError: ``disparity`` is not a 2-D array, or ``pair`` is not two gray images of
-            its shape.
+        InputError: ``disparity`` is not a 2-D array, or ``pair`` is not two images (gray or
+            RGB) of its shape.
 
     Shape:
         disparity: (H, W).

@@ -256,9 +256,19 @@ def match_strips(
     Returns:
         (N,) float64 disparity, px; NaN where the window leaves the image, the peak is weak
         or lies at the end of the search range, or the window has no texture.
+
+    Raises:
+        InputError: the images are not gray and of one shape, or the arrays' lengths differ.
     """
     lf = np.asarray(left, dtype=np.float32)
     rf = np.asarray(right, dtype=np.float32)
+    if lf.ndim != 2 or rf.shape != lf.shape:
+        raise InputError(f"left, right: expected two gray images of one shape (H, W), got "
+                         f"{lf.shape} and {rf.shape}")
+    cols, rows, d0 = (np.asarray(a).reshape(-1) for a in (cols, rows, d0))
+    if not len(cols) == len(rows) == len(d0):
+        raise InputError(f"cols, rows, d0: expected one length, got {len(cols)}, {len(rows)}, "
+                         f"{len(d0)}")
     h, w = lf.shape
     out = np.full(len(cols), np.nan)
     for i, (u, v, d) in enumerate(zip(cols, rows, d0)):

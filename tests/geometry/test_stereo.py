@@ -78,6 +78,10 @@ def test_strip_matcher_reads_each_side_of_a_horizontal_depth_edge():
     assert np.isnan(match_strips(flat, flat, np.array([50]), np.array([20]), np.array([5.0])))[0]
     assert np.isnan(match_strips(left, right, np.array([3, 50]), np.array([10, 10]),
                                  np.array([8.0, np.nan]))).all()
+    with pytest.raises(InputError, match="two gray images of one shape"):
+        match_strips(left, right[:-1], cols, rows, prior)
+    with pytest.raises(InputError, match="cols, rows, d0: expected one length"):
+        match_strips(left, right, cols, rows[:-1], prior)
 
 
 def test_penalties_reach_the_matcher():
