@@ -37,6 +37,7 @@ from lunarnav_ml.geometry.stereo import (
     compute_disparity,
     disparity_to_depth,
     disparity_to_points,
+    match_strips,
 )
 
 __all__ = [
@@ -44,7 +45,8 @@ __all__ = [
     "LifterConfig", "PinholeCamera", "SGBMStereo", "StereoRectification", "StereoRig",
     "cahv_backproject", "cahv_project", "cahv_to_pinhole", "camera_to_rover",
     "camera_to_rover_rotation", "change_pcam_pair", "compute_disparity", "disparity_to_depth",
-    "disparity_to_points", "fit_crater_ellipse", "fit_ellipse_points", "lift_crater", "parse_cahv",
+    "disparity_to_points", "fit_crater_ellipse", "fit_ellipse_points", "lift_crater",
+    "match_strips", "parse_cahv",
     "pinhole_backproject", "pinhole_from_fov", "pinhole_project", "pinhole_to_cahv",
     "rectify_cahv_pair", "rectify_images", "rover_to_camera",
 ]
