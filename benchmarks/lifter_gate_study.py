@@ -70,12 +70,23 @@ def _lifter_settings(items: list[str]) -> dict[str, Any]:
             raise LunarNavError(f"--lifter: expected FIELD=VALUE with a LifterConfig field, "
                                 f"got {item!r}")
         kind = str(fields[name])
+        if kind not in _PARSERS:
+            raise LunarNavError(f"--lifter: {name} is a {kind}; settable here: "
+                                f"{', '.join(_PARSERS)} fields")
         try:
-            out[name] = {"int": int, "float": float, "bool": lambda v: v == "true"}.get(
-                kind, str)(value)
+            out[name] = _PARSERS[kind](value)
         except ValueError:
             raise LunarNavError(f"--lifter: {name} expects type {kind}, got {value!r}") from None
     return out
+
+
+def _parse_bool(value: str) -> bool:
+    if value not in ("true", "false"):
+        raise ValueError(value)
+    return value == "true"
+
+
+_PARSERS = {"int": int, "float": float, "bool": _parse_bool, "str": str}
 
 
 def main(argv: list[str] | None = None) -> int:

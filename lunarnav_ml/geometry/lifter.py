@@ -387,13 +387,20 @@ def _rim_disparities(
         if r[0] < 0 or r[0] >= h:
             continue
         r = r[r < h]
-        vals = disp[r, col]
-        ok = np.isfinite(vals)
-        if ok.sum() < 3:
-            continue
-        slope, icpt = np.polyfit(r[ok].astype(float), vals[ok], 1)
-        out[i], rows_used[i] = slope * v + icpt, v
+        d = _line_at(r, disp[r, col], v)
+        if np.isfinite(d):
+            out[i], rows_used[i] = d, v
     return out, rows_used
+
+
+def _line_at(rows: np.ndarray, values: np.ndarray, at: float) -> float:
+    """The least-squares line through the finite ``values`` over ``rows``, evaluated at row
+    ``at``; NaN with fewer than 3 finite values."""
+    ok = np.isfinite(values)
+    if ok.sum() < 3:
+        return np.nan
+    slope, icpt = np.polyfit(rows[ok].astype(float), values[ok], 1)
+    return float(slope * at + icpt)
 
 
 def _crest_row(column: np.ndarray, v: float, snap_px: int, min_jump: float) -> float:
@@ -414,8 +421,7 @@ def _crest_row(column: np.ndarray, v: float, snap_px: int, min_jump: float) -> f
 
 
 def _match_crest(pair: tuple[np.ndarray, np.ndarray], us: np.ndarray, crest: np.ndarray,
-                 d: np.ndarray, tangent: np.ndarray, disp: np.ndarray,
-                 cfg: LifterConfig) -> np.ndarray:
+                 d: np.ndarray, tangent: np.ndarray, cfg: LifterConfig) -> np.ndarray:
     """Crest disparities re-measured with one-row windows matched below the occluding edge
     (:func:`match_strips`), extrapolated to the crest row like the matcher's; samples whose
     rows are too few keep the matcher's value."""
@@ -427,20 +433,15 @@ def _match_crest(pair: tuple[np.ndarray, np.ndarray], us: np.ndarray, crest: np.
     offs = np.arange(hi - lo + 1)
     rows = (first[:, None] + offs[None, :]).astype(np.int64)  # (N, n)
     cols = np.broadcast_to(np.round(us).astype(np.int64)[:, None], rows.shape)
-    h, w = disp.shape
+    h, w = pair[0].shape
     inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w) & (margin[:, None] < hi)
     # every row's search is centred on the matcher's crest value, not on the matcher's value at
     # that row: next to the edge that one may be smeared toward the far wall
     prior = np.where(inside, d[:, None], np.nan)
     m = match_strips(pair[0], pair[1], cols.ravel(), rows.ravel(), prior.ravel(),
                      half_width=hw, half_height=cfg.match_half_height).reshape(rows.shape)
-    out = d.copy()
-    for i in range(len(d)):
-        ok = np.isfinite(m[i])
-        if ok.sum() >= 3 and np.isfinite(d[i]):
-            slope, icpt = np.polyfit(rows[i, ok].astype(float), m[i, ok], 1)
-            out[i] = slope * crest[i] + icpt
-    return out
+    matched = np.array([_line_at(rows[i], m[i], crest[i]) for i in range(len(d))])
+    return np.where(np.isfinite(matched) & np.isfinite(d), matched, d)
 
 
 def _fit_rim_plane(
@@ -562,7 +563,7 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
     d, rows = _rim_disparities(disp, pts[near], snap_px=min(cfg.snap_px, max(2, int(0.5 * h))))
     if pair is not None and cfg.crest_match:
         tangent = np.roll(pts, -1, axis=0) - np.roll(pts, 1, axis=0)
-        d = _match_crest(pair, pts[near, 0], rows, d, tangent[near], disp, cfg)
+        d = _match_crest(pair, pts[near, 0], rows, d, tangent[near], cfg)
     ok = np.isfinite(d) & (d > 0)
     if ok.sum() < cfg.min_rim:
         return LiftResult(False, "insufficient_rim_disparity", n_rim=int(ok.sum()))

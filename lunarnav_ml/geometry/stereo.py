@@ -260,8 +260,7 @@ def match_strips(
     Raises:
         InputError: the images are not gray and of one shape, or the arrays' lengths differ.
     """
-    lf = np.asarray(left, dtype=np.float32)
-    rf = np.asarray(right, dtype=np.float32)
+    lf, rf = np.asarray(left), np.asarray(right)  # windows become float32 one at a time
     if lf.ndim != 2 or rf.shape != lf.shape:
         raise InputError(f"left, right: expected two gray images of one shape (H, W), got "
                          f"{lf.shape} and {rf.shape}")
@@ -280,10 +279,11 @@ def match_strips(
         x1 = int(u) - base + search_px + half_width + 1
         if r0 < 0 or r1 > h or x0 < 0 or x1 > w or int(u) + half_width + 1 > w:
             continue
-        tmpl = lf[r0:r1, int(u) - half_width : int(u) + half_width + 1]
+        tmpl = lf[r0:r1, int(u) - half_width : int(u) + half_width + 1].astype(np.float32)
         if float(tmpl.std()) < 1e-3:
             continue
-        score = cv2.matchTemplate(rf[r0:r1, x0:x1], tmpl, cv2.TM_CCOEFF_NORMED)[0]
+        strip = rf[r0:r1, x0:x1].astype(np.float32)
+        score = cv2.matchTemplate(strip, tmpl, cv2.TM_CCOEFF_NORMED)[0]
         k = int(np.argmax(score))
         if score[k] < min_score or k == 0 or k == len(score) - 1:
             continue

@@ -133,7 +133,7 @@ class StereoCraterLocalizer:
         boxes, scores = self.detect_boxes(left)
         if len(boxes) == 0:
             return []
-        disparity = self.stereo(left, right).disparity
-        pair = (as_image("left", left), as_image("right", right))  # gray once, not per crater
+        pair = (as_image("left", left), as_image("right", right))  # gray once a frame
+        disparity = self.stereo(*pair).disparity
         return [self.localize_box(left, disparity, b, float(s), pair)
                 for b, s in zip(boxes, scores)]

@@ -209,26 +209,24 @@ def test_rim_disparity_crest_fraction_and_the_relative_gate(crater_scene):
 
 def test_crest_match_reads_the_crest_where_the_matcher_smeared_it():
     """Far wall (5 px) above row 50, the crest and a slanted flank (9 px + 0.1 a row) below;
-    the given disparity map has the far wall smeared 4 rows into the flank, as a block matcher
-    does at an occluding edge. One-row windows matched in the images read the flank's own
-    rows, and the line through them meets the crest's row at the true 8.95 px."""
+    the matcher's crest value is 8.3 px, pulled toward the far wall as a block matcher's is at
+    an occluding edge. One-row windows matched in the images read the flank's own rows, and
+    the line through them meets the crest's row at the true 8.95 px."""
     left = _texture(120, 400, seed=5)
     rows = np.arange(120, dtype=float)[:, None]
     truth = np.where(rows < 50, 5.0, 9.0 + 0.1 * (rows - 50)) * np.ones((1, 400))
     right = _warp(left, truth)
-    smeared = truth.copy()
-    smeared[50:54] = 6.5
     us = np.arange(80.0, 320.0, 12.0)
     crest = np.full(len(us), 49.5)
-    d = np.full(len(us), 8.3)  # what the smeared map extrapolates to, too low
+    d = np.full(len(us), 8.3)  # the matcher's crest value, too low
     flat = np.tile([1.0, 0.0], (len(us), 1))  # the rim runs along the rows here
     cfg = LifterConfig(crest_match=True)
-    got = _match_crest((left.astype(np.uint8), right), us, crest, d, flat, smeared, cfg)
-    np.testing.assert_allclose(got, 8.95, atol=0.15)  # per sample; the smeared map: 8.3
+    got = _match_crest((left.astype(np.uint8), right), us, crest, d, flat, cfg)
+    np.testing.assert_allclose(got, 8.95, atol=0.15)  # per sample; the matcher's: 8.3
     assert np.median(got) == pytest.approx(8.95, abs=0.03)
     # where the rim is steep in the image the windows would cross it: the matcher's value stays
     steep = np.tile([1.0, 3.0], (len(us), 1))
-    kept = _match_crest((left.astype(np.uint8), right), us, crest, d, steep, smeared, cfg)
+    kept = _match_crest((left.astype(np.uint8), right), us, crest, d, steep, cfg)
     np.testing.assert_array_equal(kept, d)
 
 

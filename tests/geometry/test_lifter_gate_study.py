@@ -29,6 +29,14 @@ def test_a_setting_of_the_wrong_type_is_refused():
         study._lifter_settings(["snap_px=x"])
 
 
+def test_settings_this_option_cannot_parse_are_refused():
+    with pytest.raises(LunarNavError, match="match_rows is a tuple"):
+        study._lifter_settings(["match_rows=1,4"])
+    with pytest.raises(LunarNavError, match="crest_match expects type bool, got 'yes'"):
+        study._lifter_settings(["crest_match=yes"])
+    assert study._lifter_settings(["method=plane"]) == {"method": "plane"}
+
+
 def test_a_bad_setting_is_one_line_on_the_command_line(capsys, tmp_path):
     assert study.main([str(tmp_path / "a.json"), "--lifter", "nope=1"]) == 2
     err = capsys.readouterr().err.strip()
