@@ -12,6 +12,10 @@ Pd(3D) and the lifted count. Use a development render, never the evaluation set:
 
 Several sets pool their rows (each set's report in ``--out/<annotations file stem>``).
 
+The lifter's retry (``LifterConfig.retry_snap_px``) is studied as it works: a second open-gate
+run with the crest searched ``--retry-snap`` rows (``--out/<stem>/retry``), whose row stands in
+for a crater's first row where that one fails a gate and the second passes (0: no retry).
+
 ``--rows-only`` re-reads ``geometry_craters.json`` from ``--out`` instead of running again.
 """
 
@@ -31,21 +35,29 @@ from lunarnav_ml.geometry.report import geometry_report, summarize
 # (absolute px, fraction of the rim disparity, least crest fraction)
 GATES = [(1e9, 0.0, 0.0), (1.5, 0.0, 0.0), (1.0, 0.05, 0.0), (1.5, 0.08, 0.0), (1.5, 0.10, 0.0),
          (1.5, 0.12, 0.0), (1.5, 0.15, 0.0), (1.5, 0.20, 0.0), (1.5, 0.25, 0.0), (1.5, 0.0, 0.3),
-         (1.5, 0.0, 0.5)]
+         (1.5, 0.0, 0.5), (1.2, 0.10, 0.0), (1.0, 0.10, 0.0), (1.0, 0.12, 0.0), (0.8, 0.08, 0.0),
+         (0.8, 0.10, 0.0), (0.6, 0.10, 0.0)]
 DIAMETERS = ("5.0", "10.0", "15.0", "20.0")
 
 
-def apply_gate(rows: list[dict[str, Any]], abs_px: float, rel: float,
-               min_crest: float) -> list[dict[str, Any]]:
-    """Rows with ``ok`` cleared where a lift fails this gate."""
+def apply_gate(rows: list[dict[str, Any]], abs_px: float, rel: float, min_crest: float,
+               retry: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
+    """Rows with ``ok`` cleared where a lift fails this gate; with ``retry`` (rows of the same
+    craters in the same order), a failed row is replaced by its retry row where that passes."""
     cfg = LifterConfig(max_rim_residual_px=abs_px, max_rim_residual_rel=rel)
+
+    def passes(r: dict[str, Any]) -> bool:
+        return bool(r["ok"] and r["rim_residual_px"] <= cfg.residual_limit_px(r["rim_disparity_px"])
+                    and (r["crest_fraction"] or 0.0) >= min_crest)
+
     out = []
-    for r in rows:
-        r = dict(r)
-        if r["ok"]:
-            r["ok"] = (r["rim_residual_px"] <= cfg.residual_limit_px(r["rim_disparity_px"])
-                       and (r["crest_fraction"] or 0.0) >= min_crest)
-        out.append(r)
+    for k, r in enumerate(rows):
+        if passes(r):
+            out.append(r)
+        elif retry is not None and passes(retry[k]):
+            out.append(retry[k])
+        else:
+            out.append({**r, "ok": False})
     return out
 
 
@@ -98,24 +110,35 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rows-only", action="store_true", help="reuse the rows in --out")
     p.add_argument("--lifter", nargs="*", default=[], metavar="FIELD=VALUE",
                    help="other LifterConfig settings for the run, e.g. snap_px=12")
+    p.add_argument("--retry-snap", type=int, default=LifterConfig().retry_snap_px,
+                   help="rows the retry searches for the crest (default: the lifter's; 0: none)")
     args = p.parse_args(argv)
     try:
         settings = _lifter_settings(args.lifter)
-        rows = []
+        rows, retry = [], []
         for gt in args.gt:
             part = args.out / gt.stem
-            if not args.rows_only:
-                geometry_report(gt, part, ellipse_source=args.ellipse_source,
-                                lifter=LifterConfig(**settings, max_rim_residual_px=1e9),
-                                plots=False)
+            runs = [(part, settings)]
+            if args.retry_snap:
+                runs.append((part / "retry", {**settings, "snap_px": args.retry_snap}))
+            for folder, run in runs:
+                if not args.rows_only:
+                    geometry_report(gt, folder, ellipse_source=args.ellipse_source, plots=False,
+                                    lifter=LifterConfig(**{**run, "retry_snap_px": 0,
+                                                           "max_rim_residual_px": 1e9}))
             rows += load_json(part / "geometry_craters.json", "geometry report rows")
+            if args.retry_snap:
+                retry += load_json(part / "retry" / "geometry_craters.json", "retry rows")
+        if retry and [r["ann_id"] for r in retry] != [r["ann_id"] for r in rows]:
+            raise LunarNavError(f"{args.out}: the retry rows are not the same craters; run "
+                                f"again without --rows-only")
     except LunarNavError as err:
         print(f"lifter_gate_study: error: {err}", file=sys.stderr)
         return 2
     print("gate (abs px, rel, crest) | 3s centre 15-20 m | 3s centre all | 3s diameter 15-20 m"
           " | Pd(3D) | lifted | Pd(3D) at 5 / 6 / 7 m | 3s centre 15-20 m, mean of every D")
     for gate in GATES:
-        m = summarize(apply_gate(rows, *gate))
+        m = summarize(apply_gate(rows, *gate, retry=retry or None))
         near = " / ".join(f"{m['pd_3d_vs_range'].get(str(k)) or 0:.2f}" for k in (5, 6, 7))
         print(f"{gate} | {_per_d(m, 'center_3sigma_m', 'range_15_20')} | "
               f"{_per_d(m, 'center_3sigma_m', 'all_ranges')} | "

@@ -240,3 +240,22 @@ def test_crest_match_on_a_rendered_crater(crater_scene, sgbm_disparity):
     assert res.diameter_m == pytest.approx(sc.crater.diameter, abs=0.35)
     off = lift_crater(fit.ellipse, sgbm_disparity, sc.rig, LifterConfig(crest_match=False), pair)
     assert res.center_m[0] != off.center_m[0]  # the images were used
+
+
+def test_a_failed_lift_is_retried_with_a_wider_crest_search(crater_scene_side_sun):
+    """The ellipse 7 rows below the true crest: the 6-row search reads the flank below it
+    (a spread over this tight gate), the 12-row retry finds the crest and passes."""
+    sc = crater_scene_side_sun
+    e = sc.ellipse
+    low = Ellipse(e.cx, e.cy + 7.0, e.a, e.b, e.angle_deg)
+    gate = {"max_rim_residual_px": 0.1, "max_rim_residual_rel": 0.0, **SHARP}
+    disp = _true_disparity(sc)
+    first = lift_crater(low, disp, sc.rig, LifterConfig(retry_snap_px=0, **gate))
+    assert not first.ok and first.reason == "stereo_inconsistent"
+    res = lift_crater(low, disp, sc.rig, LifterConfig(**gate))
+    assert res.ok and res.crest_search_px == 12
+    np.testing.assert_allclose(res.center_m[:2], sc.center_rover[:2], atol=0.1)
+    # a retry that fails too leaves the first lift's reason
+    lower = Ellipse(e.cx, e.cy + 8.0, e.a, e.b, e.angle_deg)  # beyond half the ellipse's height
+    assert lift_crater(lower, disp, sc.rig, LifterConfig(**gate)).reason == "stereo_inconsistent"
+    assert lift_crater(e, disp, sc.rig, LifterConfig(**gate)).crest_search_px == 6

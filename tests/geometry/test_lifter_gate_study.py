@@ -41,3 +41,17 @@ def test_a_bad_setting_is_one_line_on_the_command_line(capsys, tmp_path):
     assert study.main([str(tmp_path / "a.json"), "--lifter", "nope=1"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("lifter_gate_study: error: --lifter") and "\n" not in err
+
+
+def _row(ann_id, ok, resid, disp=10.0):
+    return {"ann_id": ann_id, "ok": ok, "rim_residual_px": resid, "rim_disparity_px": disp,
+            "crest_fraction": 0.5}
+
+
+def test_a_failed_lift_is_replaced_by_its_retry_only_where_the_retry_passes():
+    rows = [_row(1, True, 0.5), _row(2, True, 1.4), _row(3, True, 1.4), _row(4, False, 0.1)]
+    retry = [_row(1, True, 9.0), _row(2, True, 0.9), _row(3, True, 1.2), _row(4, True, 0.2)]
+    got = study.apply_gate(rows, 0.8, 0.10, 0.0, retry=retry)  # gate: 1.0 px at 10 px
+    assert [r["ok"] for r in got] == [True, True, False, True]
+    assert got[0] is rows[0] and got[1] is retry[1] and got[3] is retry[3]
+    assert [r["ok"] for r in study.apply_gate(rows, 0.8, 0.10, 0.0)] == [True, False, False, False]
