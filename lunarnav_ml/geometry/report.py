@@ -355,7 +355,10 @@ def markdown_table(metrics: dict[str, Any]) -> str:
               "image."), "",
               "Pd(3D) vs near-rim range (m): " + ", ".join(
                   f"{k}: {_fmt(v)}" for k, v in metrics["pd_3d_vs_range"].items()), "",
-              "Outcomes: " + ", ".join(f"{k} {v}" for k, v in sorted(metrics["reasons"].items()))]
+              "Outcomes: " + ", ".join(f"{k} {v}" for k, v in sorted(metrics["reasons"].items())),
+              "", (f"Covariance: median centre error / σ (its larger horizontal axis) "
+                   f"{_fmt(metrics.get('center_err_over_sigma_median'))}; about 0.67 where the "
+                   "errors follow it (they lie mostly along that axis, the line of sight).")]
     return "\n".join(lines) + "\n"
 
 

@@ -259,3 +259,17 @@ def test_a_failed_lift_is_retried_with_a_wider_crest_search(crater_scene_side_su
     lower = Ellipse(e.cx, e.cy + 8.0, e.a, e.b, e.angle_deg)  # beyond half the ellipse's height
     assert lift_crater(lower, disp, sc.rig, LifterConfig(**gate)).reason == "stereo_inconsistent"
     assert lift_crater(e, disp, sc.rig, LifterConfig(**gate)).crest_search_px == 6
+
+
+def test_the_range_sigma_carries_the_rim_models_own_error(crater_scene):
+    """Exact disparities leave the samples no spread; the range sigma is then the rim model's
+    term, ``rim_model_sigma`` of the radius, along the line of sight."""
+    sc = crater_scene
+    disp = _true_disparity(sc)
+    bare = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_model_sigma=0.0, **SHARP))
+    res = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**SHARP))
+    assert bare.ok and res.ok
+    np.testing.assert_array_equal(res.center_m, bare.center_m)
+    radius = sc.crater.diameter / 2
+    assert bare.horizontal_sigma_m < 0.3 * 0.068 * radius
+    assert res.horizontal_sigma_m == pytest.approx(0.068 * radius, rel=0.1)

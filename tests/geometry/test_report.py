@@ -45,9 +45,12 @@ def test_report_on_labelled_boxes(dataset, tmp_path):
     for name in ("geometry_metrics.json", "geometry_craters.json", "geometry_report.md",
                  "geometry_errors.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0
-    assert "paper stereo" in (tmp_path / "out" / "geometry_report.md").read_text()
+    md = (tmp_path / "out" / "geometry_report.md").read_text()
+    assert "paper stereo" in md
+    assert f"σ (its larger horizontal axis) {m['center_err_over_sigma_median']:.2f}" in md
     rows = json.loads((tmp_path / "out" / "geometry_craters.json").read_text())
     assert rows[0]["ok"] and rows[0]["center_err_m"] < 0.35
+    assert rows[0]["crest_search_px"] in (6, 12)
 
 
 def test_report_with_detections(dataset, tmp_path):
