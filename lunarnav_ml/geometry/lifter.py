@@ -115,7 +115,8 @@ class LifterConfig:
             far for every crater finds wrong edges more often (development shards 0-4: Pd(3D)
             0.864 -> 0.922 but the 3-sigma centre 15-20 m 2.80 -> 3.24 m), as a second try
             behind the tighter gate it brings back lifts without the errors
-            (``benchmarks/lifter_gate_study.py``; BENCHMARKS.md, issue 5, "A tighter gate").
+            (``benchmarks/lifter_gate_study.py``; BENCHMARKS.md, issue 5, "A tighter residual
+            gate, and a retry").
         rim_offset, rim_offset_m: "tangent": the near rim's visible edge lies
             ``rim_offset * r + rim_offset_m`` in front of the rim crest (r the radius; a
             rounded rim seen from a rover's height grazes the line of sight on its outer
@@ -142,7 +143,8 @@ class LifterConfig:
         min_rim: fewest valid rim samples.
         max_tilt_deg: largest angle between the fitted ground normal and the rig's vertical.
         max_rim_residual_px: largest robust std of rim disparities about the rim plane, px.
-            "tangent": the floor of the residual gate below.
+            "tangent": the floor of the residual gate below; "plane": the whole gate (it was
+            1.5 px, the default, until session 32's tighter gate).
         max_rim_residual_rel: "tangent": the residual gate is the larger of
             ``max_rim_residual_px`` and this fraction of the median rim disparity (matcher and
             crest-model errors grow with disparity: close craters); 0 keeps the absolute gate.
