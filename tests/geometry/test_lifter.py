@@ -6,6 +6,7 @@ from lunarnav_ml.geometry.ellipse import Ellipse, fit_crater_ellipse
 from lunarnav_ml.geometry.lifter import (
     LifterConfig,
     _crest_row,
+    _lowest_step,
     _match_crest,
     _rim_disparities,
     lift_crater,
@@ -250,15 +251,43 @@ def test_a_failed_lift_is_retried_with_a_wider_crest_search(crater_scene_side_su
     low = Ellipse(e.cx, e.cy + 7.0, e.a, e.b, e.angle_deg)
     gate = {"max_rim_residual_px": 0.1, "max_rim_residual_rel": 0.0, **SHARP}
     disp = _true_disparity(sc)
-    first = lift_crater(low, disp, sc.rig, LifterConfig(retry_snap_px=0, **gate))
+    first = lift_crater(low, disp, sc.rig, LifterConfig(retry_snap_px=0, reach_far_arc=False, **gate))
     assert not first.ok and first.reason == "stereo_inconsistent"
-    res = lift_crater(low, disp, sc.rig, LifterConfig(**gate))
+    res = lift_crater(low, disp, sc.rig, LifterConfig(reach_far_arc=False, **gate))
     assert res.ok and res.crest_search_px == 12
     np.testing.assert_allclose(res.center_m[:2], sc.center_rover[:2], atol=0.1)
     # a retry that fails too leaves the first lift's reason
     lower = Ellipse(e.cx, e.cy + 8.0, e.a, e.b, e.angle_deg)  # beyond half the ellipse's height
-    assert lift_crater(lower, disp, sc.rig, LifterConfig(**gate)).reason == "stereo_inconsistent"
+    two = LifterConfig(reach_far_arc=False, **gate)
+    assert lift_crater(lower, disp, sc.rig, two).reason == "stereo_inconsistent"
     assert lift_crater(e, disp, sc.rig, LifterConfig(**gate)).crest_search_px == 6
+
+
+def test_a_third_try_takes_the_lowest_step_up_to_the_far_arc(crater_scene_side_sun):
+    """The ellipse 8 rows below the crest, beyond the searches' cap (half its height): the
+    third try finds the crest as the lowest disparity step between the far arc and the cap."""
+    sc = crater_scene_side_sun
+    e = sc.ellipse
+    low = Ellipse(e.cx, e.cy + 8.0, e.a, e.b, e.angle_deg)
+    gate = {"max_rim_residual_px": 0.1, "max_rim_residual_rel": 0.0, **SHARP}
+    disp = _true_disparity(sc)
+    assert not lift_crater(low, disp, sc.rig, LifterConfig(reach_far_arc=False, **gate)).ok
+    res = lift_crater(low, disp, sc.rig, LifterConfig(**gate))
+    assert res.ok and res.crest_step == "lowest" and res.crest_search_px == 6
+    np.testing.assert_allclose(res.center_m[:2], sc.center_rover[:2], atol=0.1)
+    assert lift_crater(e, disp, sc.rig, LifterConfig(**gate)).crest_step == "largest"
+
+
+def test_the_lowest_step_is_taken_not_the_largest():
+    """A column with a far crest step (rows 40/41, 30 %) above the near crest's (rows 50/51,
+    10 %): the lowest step of at least 8 % is the near crest, the largest the far one."""
+    column = np.full(100, 5.0)
+    column[41:] = 7.0
+    column[51:] = 7.8
+    assert _lowest_step(column, 53.0, top=38.0, snap_px=4, min_jump=0.08) == pytest.approx(50.5)
+    assert _crest_row(column, 46.0, snap_px=6, min_jump=0.08) == pytest.approx(40.5)
+    # no step of 8 % in reach: the point's own row
+    assert _lowest_step(column, 53.0, top=52.0, snap_px=4, min_jump=0.08) == 53.0
 
 
 def test_the_range_sigma_carries_the_rim_models_own_error(crater_scene):
