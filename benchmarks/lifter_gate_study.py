@@ -17,6 +17,8 @@ run with the crest searched ``--retry-snap`` rows (``--out/<stem>/retry``), whos
 for a crater's first row where that one fails a gate and the second passes (0: no retry).
 
 ``--rows-only`` re-reads ``geometry_craters.json`` from ``--out`` instead of running again.
+``--as-is`` runs the lifter with its own gates, retry and third try (``--lifter`` settings
+applied) and prints one row for the pooled sets: what the defaults give, nothing emulated.
 """
 
 from __future__ import annotations
@@ -101,6 +103,25 @@ def _parse_bool(value: str) -> bool:
 _PARSERS = {"int": int, "float": float, "bool": _parse_bool, "str": str}
 
 
+def _as_is(args: argparse.Namespace, settings: dict[str, Any]) -> int:
+    rows = []
+    for gt in args.gt:
+        part = args.out / gt.stem
+        if not args.rows_only:
+            geometry_report(gt, part, ellipse_source=args.ellipse_source, plots=False,
+                            lifter=LifterConfig(**settings))
+        rows += load_json(part / "geometry_craters.json", "geometry report rows")
+    m = summarize(rows)
+    print("3s centre 15-20 m, every D | mean | 3s centre 15-20 m, D = 5 / 10 / 15 / 20 | Pd(3D) |"
+          " lifted")
+    per_d = m["per_diameter"]
+    every = " / ".join(f"{v['range_15_20']['center_3sigma_m'] or float('nan'):.2f}"
+                       for v in per_d.values())
+    print(f"{every} | {_mean_all_d(m):.2f} | {_per_d(m, 'center_3sigma_m', 'range_15_20')} | "
+          f"{m['overall']['pd_3d']:.3f} | {m['overall']['n_lifted']}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("gt", type=Path, nargs="+",
@@ -110,11 +131,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rows-only", action="store_true", help="reuse the rows in --out")
     p.add_argument("--lifter", nargs="*", default=[], metavar="FIELD=VALUE",
                    help="other LifterConfig settings for the run, e.g. snap_px=12")
+    p.add_argument("--as-is", action="store_true",
+                   help="the lifter with its own gates and tries; one pooled row")
     p.add_argument("--retry-snap", type=int, default=LifterConfig().retry_snap_px,
                    help="rows the retry searches for the crest (default: the lifter's; 0: none)")
     args = p.parse_args(argv)
     try:
         settings = _lifter_settings(args.lifter)
+        if args.as_is:
+            return _as_is(args, settings)
         rows, retry = [], []
         for gt in args.gt:
             part = args.out / gt.stem

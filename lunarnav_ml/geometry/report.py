@@ -240,7 +240,7 @@ def _eval_crater(left: np.ndarray, right: np.ndarray | None, disp: np.ndarray, r
     t2 = time.perf_counter()
     row.update(fit_s=t1 - t0, lift_s=t2 - t1, ellipse=ellipse.to_array().tolist(),
                fit_quality=quality, reason=res.reason if res.ok else f"lift:{res.reason}",
-               crest_search_px=res.crest_search_px,
+               crest_search_px=res.crest_search_px, crest_step=res.crest_step,
                **{k: finite_or_none(getattr(res, k)) for k in
                   ("rim_residual_px", "rim_disparity_px", "crest_fraction")})
     if not res.ok:

@@ -1,4 +1,5 @@
 import importlib.util
+import json
 from pathlib import Path
 
 import pytest
@@ -55,3 +56,19 @@ def test_a_failed_lift_is_replaced_by_its_retry_only_where_the_retry_passes():
     assert [r["ok"] for r in got] == [True, True, False, True]
     assert got[0] is rows[0] and got[1] is retry[1] and got[3] is retry[3]
     assert [r["ok"] for r in study.apply_gate(rows, 0.8, 0.10, 0.0)] == [True, False, False, False]
+
+
+def test_as_is_prints_one_pooled_row_of_the_lifters_own_outcomes(capsys, tmp_path):
+    def row(d, err, ok=True):
+        return {"ann_id": 1, "diameter_m": d, "near_rim_range_m": 16.0, "ok": ok,
+                "reason": "ok" if ok else "lift:stereo_inconsistent", "center_err_m": err,
+                "center_err_xy_m": [err, 0.0], "diameter_err_m": 0.1, "sigma_h_m": 1.0}
+    for stem, rows in (("a", [row(5.0, 1.0), row(10.0, 2.0, ok=False)]), ("b", [row(5.0, 1.0)])):
+        (tmp_path / stem).mkdir()
+        (tmp_path / stem / "geometry_craters.json").write_text(json.dumps(rows))
+    argv = [str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--out", str(tmp_path),
+            "--as-is", "--rows-only"]
+    assert study.main(argv) == 0
+    out = capsys.readouterr().out.splitlines()
+    # D = 5: 3 x RMS of two 1 m errors; D = 10 not lifted; Pd(3D) 2 of 3
+    assert out[1].startswith("3.00 / nan |") and out[1].endswith("| 0.667 | 2")
