@@ -66,10 +66,10 @@ class LiftResult:
         crest_fraction: "tangent": fraction of the near-rim samples that found an occluding
             crest edge (a disparity jump) to move to; the rest kept the ellipse's row.
         crest_search_px: "tangent": rows searched for the crest edge (``snap_px``, or
-            ``retry_snap_px`` where the first lift failed and the retry passed).
+            ``retry_snap_px`` where a lift with it was the one that passed).
         crest_step: "tangent": "largest" (the crest is the largest disparity step near the
-            ellipse) or "lowest" (the third try, ``reach_far_arc``: the lowest step between
-            the far arc and the search's reach below the near arc).
+            ellipse) or "lowest" (``reach_far_arc``: the lowest step between the far arc and
+            the search's reach below the near arc).
     """
 
     ok: bool
@@ -121,16 +121,16 @@ class LifterConfig:
             behind the tighter gate it brings back lifts without the errors
             (``benchmarks/lifter_gate_study.py``; BENCHMARKS.md, issue 5, "A tighter residual
             gate, and a retry").
-        reach_far_arc: "tangent": a lift that fails both tries is tried a third time with the
-            crest taken as the lowest disparity step (at least the crest search's 8 %) between
-            the ellipse's far arc and ``snap_px`` rows (at most half the ellipse's height) below
-            its near arc. Where the crater sits on a rise or behind one, the visible near edge
+        reach_far_arc: "tangent": a lift that fails both tries is tried again, with
+            ``snap_px`` and then ``retry_snap_px``, with the crest taken as the lowest disparity
+            step (at least the crest search's 8 %) between the ellipse's far arc and that many
+            rows (at most half the ellipse's height) below its near arc. Where the crater sits on a rise or behind one, the visible near edge
             can lie most of the ellipse's height above its near arc, out of the first searches'
             reach; the lowest step there is that edge (a far crest lies above it). As the
             first rule it found steps on nearer terrain below small craters (development, seed
-            1, D = 5 m: 3-sigma 1 -> 5 m), as the third try it brings back lifts: Pd(3D) 0.83 ->
-            0.89-0.91 on three development sets, the 3-sigma centre at 15-20 m nearly as it was
-            (BENCHMARKS.md, issue 5, "A third try").
+            1, D = 5 m: 3-sigma 1 -> 5 m), as the third and fourth tries it brings back lifts:
+            Pd(3D) 0.83 -> 0.92-0.94 on three development sets, the 3-sigma centre at 15-20 m
+            nearly as it was (BENCHMARKS.md, issue 5, "A third try").
         rim_offset, rim_offset_m: "tangent": the near rim's visible edge lies
             ``rim_offset * r + rim_offset_m`` in front of the rim crest (r the radius; a
             rounded rim seen from a rover's height grazes the line of sight on its outer
@@ -274,16 +274,13 @@ def lift_crater(
     if not (np.all(np.isfinite(ell)) and ellipse.a > 0 and ellipse.b > 0):
         return LiftResult(False, "invalid_ellipse")
     if cfg.method == "tangent":
-        res = _lift_tangent(ellipse, disp, rig, cfg, pair)
-        if not res.ok and cfg.retry_snap_px > cfg.snap_px:
-            retry = _lift_tangent(ellipse, disp, rig, replace(cfg, snap_px=cfg.retry_snap_px), pair)
-            if retry.ok:
-                return retry
-        if not res.ok and cfg.reach_far_arc:
-            third = _lift_tangent(ellipse, disp, rig, cfg, pair, lowest_step=True)
-            if third.ok:
-                return third
-        return res
+        first = None
+        for tried, lowest in _tries(cfg):
+            res = _lift_tangent(ellipse, disp, rig, tried, pair, lowest_step=lowest)
+            if res.ok:
+                return res
+            first = first or res
+        return first
     if cfg.method != "plane":
         raise InputError(f"config.method: expected 'tangent' or 'plane', got {cfg.method!r}")
     plane = _fit_ground(disp, ellipse, rig, cfg)
@@ -307,6 +304,16 @@ def lift_crater(
         return LiftResult(False, reason, **base)
     cov = _covariance(solve, ellipse, plane, s, var_s, rig, cfg)
     return LiftResult(True, "ok", center, diam, cov, rim_pts, **base)
+
+
+def _tries(cfg: LifterConfig) -> list[tuple[LifterConfig, bool]]:
+    """The "tangent" lifts to try in turn, (settings, lowest-step crest rule): the crest
+    search, its retry, and with ``reach_far_arc`` both again with the lowest-step rule."""
+    searches = [cfg]
+    if cfg.retry_snap_px > cfg.snap_px:
+        searches.append(replace(cfg, snap_px=cfg.retry_snap_px))
+    rules = (False, True) if cfg.reach_far_arc else (False,)
+    return [(c, lowest) for lowest in rules for c in searches]
 
 
 def _check_disparity(disparity: np.ndarray) -> np.ndarray:

@@ -9,6 +9,7 @@ from lunarnav_ml.geometry.lifter import (
     _lowest_step,
     _match_crest,
     _rim_disparities,
+    _tries,
     lift_crater,
 )
 from lunarnav_ml.geometry.stereo import SGBMStereo
@@ -302,3 +303,12 @@ def test_the_range_sigma_carries_the_rim_models_own_error(crater_scene):
     radius = sc.crater.diameter / 2
     assert bare.horizontal_sigma_m < 0.3 * 0.068 * radius
     assert res.horizontal_sigma_m == pytest.approx(0.068 * radius, rel=0.1)
+
+
+def test_the_tries_widen_the_search_then_change_the_crest_rule():
+    got = [(c.snap_px, lowest) for c, lowest in _tries(LifterConfig())]
+    assert got == [(6, False), (12, False), (6, True), (12, True)]
+    assert [(c.snap_px, lw) for c, lw in _tries(LifterConfig(reach_far_arc=False))] == [
+        (6, False), (12, False)]
+    assert [(c.snap_px, lw) for c, lw in _tries(LifterConfig(retry_snap_px=0))] == [
+        (6, False), (6, True)]
