@@ -14,10 +14,11 @@ Several sets pool their rows (each set's report in ``--out/<annotations file ste
 
 The lifter's retry (``LifterConfig.retry_snap_px``) is studied as it works: a second open-gate
 run with the crest searched ``--retry-snap`` rows (``--out/<stem>/retry``), whose row stands in
-for a crater's first row where that one fails a gate and the second passes (0: no retry).
+for a crater's first row where that one fails a gate and the second passes (0: no retry). The
+lifter's later tries (``reach_far_arc``) are off in these runs, so each row is the try it names.
 
 ``--rows-only`` re-reads ``geometry_craters.json`` from ``--out`` instead of running again.
-``--as-is`` runs the lifter with its own gates, retry and third try (``--lifter`` settings
+``--as-is`` runs the lifter with its own gates and all its tries (``--lifter`` settings
 applied) and prints one row for the pooled sets: what the defaults give, nothing emulated.
 """
 
@@ -150,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
                 if not args.rows_only:
                     geometry_report(gt, folder, ellipse_source=args.ellipse_source, plots=False,
                                     lifter=LifterConfig(**{**run, "retry_snap_px": 0,
+                                                           "reach_far_arc": False,
                                                            "max_rim_residual_px": 1e9}))
             rows += load_json(part / "geometry_craters.json", "geometry report rows")
             if args.retry_snap:

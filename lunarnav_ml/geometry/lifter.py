@@ -274,12 +274,18 @@ def lift_crater(
     if not (np.all(np.isfinite(ell)) and ellipse.a > 0 and ellipse.b > 0):
         return LiftResult(False, "invalid_ellipse")
     if cfg.method == "tangent":
-        first = None
+        first, done = None, set()
         for tried, lowest in _tries(cfg):
+            # a wider search capped at half the ellipse's height may be the one already tried
+            search = (_crest_reach(tried, ellipse), lowest)
+            if search in done:
+                continue
+            done.add(search)
             res = _lift_tangent(ellipse, disp, rig, tried, pair, lowest_step=lowest)
             if res.ok:
                 return res
-            first = first or res
+            if first is None:
+                first = res
         return first
     if cfg.method != "plane":
         raise InputError(f"config.method: expected 'tangent' or 'plane', got {cfg.method!r}")
@@ -314,6 +320,12 @@ def _tries(cfg: LifterConfig) -> list[tuple[LifterConfig, bool]]:
         searches.append(replace(cfg, snap_px=cfg.retry_snap_px))
     rules = (False, True) if cfg.reach_far_arc else (False,)
     return [(c, lowest) for lowest in rules for c in searches]
+
+
+def _crest_reach(cfg: LifterConfig, ell: Ellipse) -> int:
+    """Rows the crest search reaches from the ellipse: ``snap_px``, within half its height
+    (clear of the far rim, and of nearer rocks and rims below a small crater)."""
+    return min(cfg.snap_px, max(2, int(0.5 * ell.bbox()[3])))
 
 
 def _check_disparity(disparity: np.ndarray) -> np.ndarray:
@@ -481,9 +493,10 @@ def _lowest_step(column: np.ndarray, v: float, top: float, snap_px: int, min_jum
     ``snap_px`` rows below ``v`` (``v`` when there is none)."""
     lo, hi = max(int(np.floor(top)) + 1, 0), min(int(np.floor(v)) + snap_px + 2, len(column))
     steps = _relative_steps(column, lo, hi)
-    if steps is None or not np.any(steps[1] >= min_jump):
+    big = [] if steps is None else np.flatnonzero(steps[1] >= min_jump)
+    if len(big) == 0:
         return v
-    return float(steps[0][np.flatnonzero(steps[1] >= min_jump)[-1]]) - 0.5
+    return float(steps[0][big[-1]]) - 0.5
 
 
 def _crest_row(column: np.ndarray, v: float, snap_px: int, min_jump: float) -> float:
@@ -639,12 +652,9 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
         return LiftResult(False, "degenerate_circle")
     _, y, _, h = ell.bbox()
     near = pts[:, 1] - (y + h / 2) > cfg.tri_side * h / 2
-    # the search stays within half the ellipse's height: clear of the far rim, and of nearer
-    # rocks and rims below a small crater
-    snap = min(cfg.snap_px, max(2, int(0.5 * h)))
     # the far arc's row in each sample's column, one row under it (mirrored about the centre)
     tops = 2 * (y + h / 2) - pts[near, 1] + 1 if lowest_step else None
-    d, rows = _rim_disparities(disp, pts[near], snap_px=snap, tops=tops)
+    d, rows = _rim_disparities(disp, pts[near], snap_px=_crest_reach(cfg, ell), tops=tops)
     if pair is not None and cfg.crest_match:
         tangent = np.roll(pts, -1, axis=0) - np.roll(pts, 1, axis=0)
         d = _match_crest(pair, pts[near, 0], rows, d, tangent[near], cfg)
