@@ -312,3 +312,29 @@ def test_the_tries_widen_the_search_then_change_the_crest_rule():
         (6, False), (12, False)]
     assert [(c.snap_px, lw) for c, lw in _tries(LifterConfig(retry_snap_px=0))] == [
         (6, False), (6, True)]
+
+
+def test_a_near_rim_hidden_behind_a_brow_is_rejected(crater_scene):
+    """Level ground in front of the near rim, a little above its crest (a crater on a
+    downslope, seen over a brow): the visible edge is the brow, not the crest."""
+    sc = crater_scene
+    disp = _true_disparity(sc)
+    rim = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**SHARP))
+    assert rim.ok and rim.flank_rise_m > 0.05  # the outer flank lies below a visible crest
+    brow = disp.copy()
+    pts = sc.ellipse.points(720)
+    near = pts[pts[:, 1] > sc.ellipse.cy]
+    plateau = rim.rim_height_m + 0.05
+    for u, v in near:
+        rows = np.arange(int(np.ceil(v)), int(np.ceil(v)) + 25)
+        uv = np.column_stack([np.full(len(rows), round(u)), rows]).astype(float)
+        down = -(sc.rig.rays(uv) @ sc.rig.rotation.T)[:, 2]  # rover-frame drop per unit depth
+        brow[rows, round(u)] = sc.rig.focal_px * sc.rig.baseline_m * down / (
+            sc.rig.height_m - plateau)
+    hidden = lift_crater(sc.ellipse, brow, sc.rig, LifterConfig(**SHARP))
+    assert not hidden.ok and hidden.reason == "near_rim_hidden"
+    assert abs(hidden.flank_rise_m) < 0.03
+    # unchecked, the lift reads the brow: the crater comes out too near
+    read = lift_crater(sc.ellipse, brow, sc.rig, LifterConfig(min_flank_rise_m=None, **SHARP))
+    assert read.ok
+    assert np.hypot(*read.center_m[:2]) < np.hypot(*sc.center_rover[:2]) - 0.1
