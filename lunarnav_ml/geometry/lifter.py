@@ -724,7 +724,7 @@ def _flank_rise(disp: np.ndarray, crest: np.ndarray, z_crest: np.ndarray, rig: S
     Shape:
         disp: (H, W); crest: (N, 2) px (column, crest row); z_crest: (N,) m.
     """
-    n_rows = max(3, int(round(h / 2)))
+    n_rows = max(3, round(h / 2))
     rows = np.floor(crest[:, 1]).astype(np.int64)[:, None] + 2 + np.arange(n_rows)[None, :]
     cols = np.broadcast_to(np.round(crest[:, 0]).astype(np.int64)[:, None], rows.shape)
     inside = (rows < disp.shape[0]) & (cols >= 0) & (cols < disp.shape[1])
