@@ -9,7 +9,10 @@ offset that would have put its center at the truth along the line of sight: with
 range of the near edge R = rho k0 - offset (k0 = 1 - sin(alpha) on the line of sight), an
 along-range error e needs offset = -e k0. It then fits offset = rim_offset_m + rim_offset * r
 to the per-diameter medians (weights sqrt(n)) and prints both. Use development renders, never
-the evaluation set:
+the evaluation set. Lifts from fitted ellipses and from box ellipses (the fitter's
+"box_fallback", or ``--ellipse-source box``) are fitted apart (``box_rim_offset``,
+``box_rim_offset_m``): a box's inscribed ellipse sits lower than the rim where the box also
+holds the outer flank, and its lifts read nearer:
 
     .venv/bin/lunarnav synth /tmp/dev_ps --protocol paper-stereo --seed 1 --size 1024 --shard 0/7
     .venv/bin/python benchmarks/calibrate_rim_offset.py /tmp/dev_ps/annotations.shard-0-of-7.json \\
@@ -72,8 +75,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="LifterConfig.crest_match (default: the lifter's default)")
     args = p.parse_args(argv)
     match = {} if args.crest_match is None else {"crest_match": args.crest_match == "on"}
-    zero = LifterConfig(rim_offset=0.0, rim_offset_m=0.0, **match)
+    zero = LifterConfig(rim_offset=0.0, rim_offset_m=0.0, box_rim_offset=0.0,
+                        box_rim_offset_m=0.0, **match)
     rows: list[dict[str, Any]] = []
+    fits: dict[str, Any] = {}
     try:
         for k, gt in enumerate(args.gt):
             part = args.out / f"set{k}"
@@ -81,21 +86,33 @@ def main(argv: list[str] | None = None) -> int:
                 geometry_report(gt, part, ellipse_source=args.ellipse_source, lifter=zero,
                                 plots=False)
             rows += load_json(part / "geometry_craters.json", "geometry report rows")
-        radius, near, need = needed_offsets(rows)
-        icpt, slope, per_r = fit_offset(radius, need)
+        # fitted ellipses and box ellipses (the fitter's fallback) get their own offsets
+        for prefix, from_box in (("", False), ("box_", True)):
+            group = [r for r in rows if bool(r.get("from_box")) == from_box]
+            if any(r["ok"] for r in group):
+                radius, near, need = needed_offsets(group)
+                fits[prefix] = (radius, near, need, *fit_offset(radius, need))
     except LunarNavError as err:
         print(f"calibrate_rim_offset: error: {err}", file=sys.stderr)
         return 2
-    print("D (m) | lifted | median offset needed (m) | as a fraction of r | fitted (m)")
-    for r, (n, med) in per_r.items():
-        print(f"{2 * r:g} | {n} | {med:+.3f} | {med / r:+.3f} | {icpt + slope * r:+.3f}")
-    print(f"LifterConfig(rim_offset={slope:.4f}, rim_offset_m={icpt:.4f})")
+    result: dict[str, Any] = {}
+    for prefix, (radius, near, need, icpt, slope, per_r) in fits.items():
+        print(f"{'box' if prefix else 'fitted'} ellipses: D (m) | lifted | median offset needed "
+              "(m) | as a fraction of r | fitted (m)")
+        for r, (n, med) in per_r.items():
+            print(f"{2 * r:g} | {n} | {med:+.3f} | {med / r:+.3f} | {icpt + slope * r:+.3f}")
+        result[prefix] = {
+            f"{prefix}rim_offset": slope, f"{prefix}rim_offset_m": icpt, "n_lifted": len(need),
+            "per_diameter": {f"{2 * r:g}": {"n": n, "median_m": med}
+                             for r, (n, med) in per_r.items()}}
+        _plot(args.out / f"{prefix}rim_offset.png", radius, near, need, icpt, slope)
+    settings = ", ".join(f"{k}={v:.4f}" for part in result.values() for k, v in part.items()
+                         if k.endswith(("rim_offset", "rim_offset_m")))
+    print(f"LifterConfig({settings})")
     write_json(args.out / "rim_offset.json", {
-        "rim_offset": slope, "rim_offset_m": icpt, "n_lifted": len(need),
-        "per_diameter": {f"{2 * r:g}": {"n": n, "median_m": med} for r, (n, med) in per_r.items()},
+        "fitted_ellipses": result.get(""), "box_ellipses": result.get("box_"),
         "sets": [str(g) for g in args.gt], "ellipse_source": args.ellipse_source,
         "crest_match": zero.crest_match})
-    _plot(args.out / "rim_offset.png", radius, near, need, icpt, slope)
     return 0
 
 

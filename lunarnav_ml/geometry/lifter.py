@@ -139,13 +139,23 @@ class LifterConfig:
             rounded rim seen from a rover's height grazes the line of sight on its outer
             flank). A calibration of the whole chain, SGBM and crest search included, so it
             also takes up the matcher's range bias at a crest (small craters' crests read
-            low, hence the negative metric term). 0.1055 and -0.2217 m: fitted by
-            ``benchmarks/calibrate_rim_offset.py --crest-match on`` (fitted ellipse, SGBM,
-            crest match) on five shards of a development render of the paper-stereo grid
-            (seed 1, D 5-20 m, 5-20 m), checked on a sixth; not fitted on any evaluation set.
-            Without the crest match (no image pair given) the same fit gave 0.125 and
-            -0.255 m. Recalibrate for another matcher, rig or terrain. The geometric part
-            alone (rendered disparity) was 0.06 r.
+            low, hence the negative metric term). 0.0678 and -0.1684 m (session 33): fitted
+            by ``benchmarks/calibrate_rim_offset.py`` (fitted ellipse, SGBM, crest match,
+            every default gate and try) on the lifts from fitted ellipses of two development
+            terrains of the paper-stereo grid (seed 1 shards 0-3, seed 2 shards 0-3; D 5-20
+            m, 5-20 m), checked on seed 1 shards 4-6; not fitted on any evaluation set.
+            Before, one pair for every lift: 0.1055 and -0.2217 m (session 31, seed 1 shards
+            0-4, before the later gates and tries); without the crest match (no image pair
+            given) that fit gave 0.125 and -0.255 m. Recalibrate for another matcher, rig or
+            terrain. The geometric part alone (rendered disparity) was 0.06 r.
+        box_rim_offset, box_rim_offset_m: the same for lifts from a box's inscribed ellipse
+            (``lift_crater(..., from_box=True)``: the fitter's "box_fallback"). A box also
+            holds the rim's outer flank and raised parts, so its ellipse's near arc lies below
+            the visible crest, the crest search misses it more often and the lift reads
+            nearer: with one pair for both, the box lifts came out 0.20-0.28 m too near and
+            the fitted ones 0.15-0.21 m too far on all three development sets. 0.0887 and
+            -0.0331 m, from the same calibration (BENCHMARKS.md, issue 5, "Edge offsets for
+            box ellipses").
         corr_factor: variance inflation for neighbouring rim samples sharing matcher windows.
         ground_gap: rows skipped below the ellipse before the ground patch, times its height.
         ground_rows: the ground patch ends this many ellipse heights (+ 30 px) below it.
@@ -215,8 +225,10 @@ class LifterConfig:
     snap_px: int = 6
     retry_snap_px: int = 12
     reach_far_arc: bool = True
-    rim_offset: float = 0.1055
-    rim_offset_m: float = -0.2217
+    rim_offset: float = 0.0678
+    rim_offset_m: float = -0.1684
+    box_rim_offset: float = 0.0887
+    box_rim_offset_m: float = -0.0331
     corr_factor: float = 2.0
     ground_gap: float = 0.5
     ground_rows: float = 4.0
@@ -258,6 +270,7 @@ def lift_crater(
     rig: StereoRig,
     config: LifterConfig | None = None,
     pair: tuple[np.ndarray, np.ndarray] | None = None,
+    from_box: bool = False,
 ) -> LiftResult:
     """Lift an image rim ellipse to a crater center and diameter in the rover frame.
 
@@ -268,6 +281,9 @@ def lift_crater(
         config: thresholds and noise levels (defaults: :class:`LifterConfig`).
         pair: the rectified (left, right) images the disparity came from (gray or RGB); with
             ``config.crest_match`` the rim's crest disparities are measured again from them.
+        from_box: the ellipse is a box's inscribed one (``EllipseFitter``'s "box_fallback"),
+            not a fit to rim edges: "tangent" then uses ``config.box_rim_offset`` and
+            ``box_rim_offset_m`` as the edge offsets.
 
     Returns:
         LiftResult; ``ok`` False with a ``reason`` for rejected or impossible fits.
@@ -280,6 +296,8 @@ def lift_crater(
         disparity: (H, W).
     """
     cfg = config or LifterConfig()
+    if from_box:
+        cfg = replace(cfg, rim_offset=cfg.box_rim_offset, rim_offset_m=cfg.box_rim_offset_m)
     disp = _check_disparity(disparity)
     if pair is not None:
         pair = _check_pair(pair, disp.shape)

@@ -236,9 +236,12 @@ def _eval_crater(left: np.ndarray, right: np.ndarray | None, disp: np.ndarray, r
     t1 = time.perf_counter()
     if ellipse is None:
         return {**row, "reason": f"ellipse:{fit_reason}", "fit_s": t1 - t0}
-    res = lift_crater(ellipse, disp, rig, cfg.lifter, None if right is None else (left, right))
+    from_box = cfg.source == "box" or fit_reason == "box_fallback"
+    res = lift_crater(ellipse, disp, rig, cfg.lifter, None if right is None else (left, right),
+                      from_box=from_box)
     t2 = time.perf_counter()
     row.update(fit_s=t1 - t0, lift_s=t2 - t1, ellipse=ellipse.to_array().tolist(),
+               from_box=from_box,
                fit_quality=quality, reason=res.reason if res.ok else f"lift:{res.reason}",
                crest_search_px=res.crest_search_px, crest_step=res.crest_step,
                **{k: finite_or_none(getattr(res, k)) for k in

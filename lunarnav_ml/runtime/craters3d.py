@@ -111,7 +111,8 @@ class StereoCraterLocalizer:
         fit = self.fitter(left, xywh)
         if not fit.ok:
             return Crater3D(box, score, reason=f"ellipse:{fit.reason}")
-        lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter, pair)
+        lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter, pair,
+                           from_box=fit.reason == "box_fallback")
         return Crater3D(box, score, fit.ellipse, fit.quality, lift,
                         "ok" if lift.ok else f"lift:{lift.reason}")
 

@@ -1,4 +1,5 @@
 import importlib.util
+import json
 from pathlib import Path
 
 import numpy as np
@@ -43,3 +44,17 @@ def test_one_diameter_is_not_enough():
     rows = [r for r in _rows(0.0, 0.06) if r["diameter_m"] == 5.0]
     with pytest.raises(LunarNavError, match="two diameters"):
         cal.fit_offset(*cal.needed_offsets(rows)[::2])
+
+
+def test_fitted_and_box_ellipses_get_their_own_offsets(tmp_path, capsys):
+    rows = _rows(-0.2, 0.07) + [{**r, "from_box": True} for r in _rows(0.0, 0.09, seed=1)]
+    (tmp_path / "set0").mkdir()
+    (tmp_path / "set0" / "geometry_craters.json").write_text(json.dumps(rows))
+    assert cal.main(["unused.json", "--out", str(tmp_path), "--rows-only"]) == 0
+    got = json.loads((tmp_path / "rim_offset.json").read_text())
+    assert got["fitted_ellipses"]["rim_offset_m"] == pytest.approx(-0.2, abs=0.03)
+    assert got["fitted_ellipses"]["rim_offset"] == pytest.approx(0.07, abs=0.005)
+    assert got["box_ellipses"]["box_rim_offset_m"] == pytest.approx(0.0, abs=0.03)
+    assert got["box_ellipses"]["box_rim_offset"] == pytest.approx(0.09, abs=0.005)
+    assert "box_rim_offset=0.0897" in capsys.readouterr().out
+    assert (tmp_path / "box_rim_offset.png").is_file() and (tmp_path / "rim_offset.png").is_file()
