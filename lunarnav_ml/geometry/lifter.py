@@ -124,16 +124,22 @@ class LifterConfig:
             behind the tighter gate it brings back lifts without the errors
             (``benchmarks/lifter_gate_study.py``; BENCHMARKS.md, issue 5, "A tighter residual
             gate, and a retry").
-        reach_far_arc: "tangent": a lift that fails both tries is tried again, with
-            ``snap_px`` and then ``retry_snap_px``, with the crest taken as the lowest disparity
-            step (at least the crest search's 8 %) between the ellipse's far arc and that many
-            rows (at most half the ellipse's height) below its near arc. Where the crater sits on a rise or behind one, the visible near edge
-            can lie most of the ellipse's height above its near arc, out of the first searches'
-            reach; the lowest step there is that edge (a far crest lies above it). As the
-            first rule it found steps on nearer terrain below small craters (development, seed
-            1, D = 5 m: 3-sigma 1 -> 5 m), as the third and fourth tries it brings back lifts:
-            Pd(3D) 0.83 -> 0.92-0.94 on three development sets, the 3-sigma centre at 15-20 m
-            nearly as it was (BENCHMARKS.md, issue 5, "A third try").
+        reach_far_arc: "tangent": every crest search (``snap_px``, then ``retry_snap_px``)
+            lifts twice, with the crest as the largest disparity step near the ellipse and as
+            the lowest step (at least the crest search's 8 %) between the ellipse's far arc and
+            the search's reach (at most half the ellipse's height) below its near arc, and the
+            farther of the lifts that pass every check is kept. Where the crater sits on a rise
+            or behind one, or where a box's ellipse lies below the rim, the visible near edge
+            can lie most of the ellipse's height above the near arc, out of the first rule's
+            reach, which then reads the flank below it; where the lowest step is on nearer
+            terrain below a small crater, that lift reads nearer still. Each failure reads
+            too near, so the farther lift is the crest (a far crest lies above the near edge,
+            out of the lowest rule's range). Session 32 ran the lowest rule only where the
+            largest-step lifts failed (Pd(3D) 0.83 -> 0.92-0.94); both rules on every search,
+            the farther kept (session 33): mean 3-sigma centre at 15-20 m over the seven
+            diameters 1.79 -> 1.51 m (seed 2), 2.42 -> 1.64 m (seed 3, held out), 1.60 ->
+            1.62 and 1.59 -> 1.68 m (seed 1), at the same Pd(3D) (BENCHMARKS.md, issue 5,
+            "Both crest rules, the farther lift kept"). False: the largest-step rule alone.
         rim_offset, rim_offset_m: "tangent": the near rim's visible edge lies
             ``rim_offset * r + rim_offset_m`` in front of the rim crest (r the radius; a
             rounded rim seen from a rover's height grazes the line of sight on its outer
@@ -306,17 +312,19 @@ def lift_crater(
         return LiftResult(False, "invalid_ellipse")
     if cfg.method == "tangent":
         first, done = None, set()
-        for tried, lowest in _tries(cfg):
+        for search in _tries(cfg):
             # a wider search capped at half the ellipse's height may be the one already tried
-            search = (_crest_reach(tried, ellipse), lowest)
-            if search in done:
+            reach = _crest_reach(search[0][0], ellipse)
+            if reach in done:
                 continue
-            done.add(search)
-            res = _lift_tangent(ellipse, disp, rig, tried, pair, lowest_step=lowest)
-            if res.ok:
-                return res
+            done.add(reach)
+            lifts = [_lift_tangent(ellipse, disp, rig, tried, pair, lowest_step=lowest)
+                     for tried, lowest in search]
+            passed = [res for res in lifts if res.ok]
+            if passed:  # each way of missing the crest reads nearer: keep the farther lift
+                return max(passed, key=lambda res: float(np.hypot(*res.center_m[:2])))
             if first is None:
-                first = res
+                first = lifts[0]
         return first
     if cfg.method != "plane":
         raise InputError(f"config.method: expected 'tangent' or 'plane', got {cfg.method!r}")
@@ -343,14 +351,15 @@ def lift_crater(
     return LiftResult(True, "ok", center, diam, cov, rim_pts, **base)
 
 
-def _tries(cfg: LifterConfig) -> list[tuple[LifterConfig, bool]]:
-    """The "tangent" lifts to try in turn, (settings, lowest-step crest rule): the crest
-    search, its retry, and with ``reach_far_arc`` both again with the lowest-step rule."""
+def _tries(cfg: LifterConfig) -> list[list[tuple[LifterConfig, bool]]]:
+    """The "tangent" lifts, one list per crest search in the order tried (``snap_px``, then
+    ``retry_snap_px``), each (settings, lowest-step crest rule): the largest-step rule, and
+    with ``reach_far_arc`` also the lowest-step rule."""
     searches = [cfg]
     if cfg.retry_snap_px > cfg.snap_px:
         searches.append(replace(cfg, snap_px=cfg.retry_snap_px))
     rules = (False, True) if cfg.reach_far_arc else (False,)
-    return [(c, lowest) for lowest in rules for c in searches]
+    return [[(c, lowest) for lowest in rules] for c in searches]
 
 
 def _crest_reach(cfg: LifterConfig, ell: Ellipse) -> int:

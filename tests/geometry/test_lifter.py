@@ -305,13 +305,13 @@ def test_the_range_sigma_carries_the_rim_models_own_error(crater_scene):
     assert res.horizontal_sigma_m == pytest.approx(0.068 * radius, rel=0.1)
 
 
-def test_the_tries_widen_the_search_then_change_the_crest_rule():
-    got = [(c.snap_px, lowest) for c, lowest in _tries(LifterConfig())]
-    assert got == [(6, False), (12, False), (6, True), (12, True)]
-    assert [(c.snap_px, lw) for c, lw in _tries(LifterConfig(reach_far_arc=False))] == [
-        (6, False), (12, False)]
-    assert [(c.snap_px, lw) for c, lw in _tries(LifterConfig(retry_snap_px=0))] == [
-        (6, False), (6, True)]
+def test_the_tries_widen_the_search_each_with_both_crest_rules():
+    got = [[(c.snap_px, lowest) for c, lowest in s] for s in _tries(LifterConfig())]
+    assert got == [[(6, False), (6, True)], [(12, False), (12, True)]]
+    assert [[(c.snap_px, lw) for c, lw in s] for s in _tries(LifterConfig(reach_far_arc=False))] == [
+        [(6, False)], [(12, False)]]
+    assert [[(c.snap_px, lw) for c, lw in s] for s in _tries(LifterConfig(retry_snap_px=0))] == [
+        [(6, False), (6, True)]]
 
 
 def test_a_near_rim_hidden_behind_a_brow_is_rejected(crater_scene):
@@ -338,3 +338,19 @@ def test_a_near_rim_hidden_behind_a_brow_is_rejected(crater_scene):
     read = lift_crater(sc.ellipse, brow, sc.rig, LifterConfig(min_flank_rise_m=None, **SHARP))
     assert read.ok
     assert np.hypot(*read.center_m[:2]) < np.hypot(*sc.center_rover[:2]) - 0.1
+
+
+def test_of_two_passing_crest_rules_the_farther_lift_is_kept(crater_scene_side_sun):
+    """The ellipse 8 rows below the crest with a loose gate: the largest-step lift passes but
+    reads the flank below the crest, too near; the lowest-step lift finds the crest."""
+    sc = crater_scene_side_sun
+    e = sc.ellipse
+    low = Ellipse(e.cx, e.cy + 8.0, e.a, e.b, e.angle_deg)
+    disp = _true_disparity(sc)
+    truth = np.hypot(*sc.center_rover[:2])
+    flank = lift_crater(low, disp, sc.rig, LifterConfig(reach_far_arc=False, **SHARP))
+    assert flank.ok and flank.crest_step == "largest"
+    assert np.hypot(*flank.center_m[:2]) < truth - 0.3
+    res = lift_crater(low, disp, sc.rig, LifterConfig(**SHARP))
+    assert res.ok and res.crest_step == "lowest" and res.crest_search_px == 6
+    np.testing.assert_allclose(res.center_m[:2], sc.center_rover[:2], atol=0.1)
