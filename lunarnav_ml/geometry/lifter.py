@@ -221,7 +221,8 @@ class LifterConfig:
             of the ``max(3, h / 2)`` rows from 2 below it, h the ellipse's height) is rejected
             as "near_rim_hidden": the visible edge is a brow of nearer terrain with the crest
             behind it (a crater on a downslope), and the lift reads that brow, up to 3 m too
-            near at 15-20 m. None turns the check off. Development sets (seed 1 shards 0-3
+            near at 15-20 m (a lift with no valid ground rows there is not judged). None
+            turns the check off. Development sets (seed 1 shards 0-3
             and 4-6, seed 2 shards 0-3): see BENCHMARKS.md, issue 5, "A hidden near rim".
     """
 
@@ -735,7 +736,7 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
             "crest_search_px": cfg.snap_px, "crest_step": "lowest" if lowest_step else "largest"}
     if rstd > cfg.residual_limit_px(d_rim):
         return LiftResult(False, "stereo_inconsistent", **base)
-    if cfg.min_flank_rise_m is not None and not rise > cfg.min_flank_rise_m:
+    if cfg.min_flank_rise_m is not None and rise <= cfg.min_flank_rise_m:  # NaN: not judged
         return LiftResult(False, "near_rim_hidden", **base)
     var_rho = var[0, 0] * rho**4 * cfg.corr_factor + (cfg.rim_model_sigma * rho * np.sin(alpha))**2
     cov = _tangent_covariance(rho, var_rho, phi, alpha, rover, cfg, rig.focal_px)
@@ -754,7 +755,7 @@ def _flank_rise(disp: np.ndarray, crest: np.ndarray, z_crest: np.ndarray, rig: S
     n_rows = max(3, round(h / 2))
     rows = np.floor(crest[:, 1]).astype(np.int64)[:, None] + 2 + np.arange(n_rows)[None, :]
     cols = np.broadcast_to(np.round(crest[:, 0]).astype(np.int64)[:, None], rows.shape)
-    inside = (rows < disp.shape[0]) & (cols >= 0) & (cols < disp.shape[1])
+    inside = (rows >= 0) & (rows < disp.shape[0]) & (cols >= 0) & (cols < disp.shape[1])
     d = np.full(rows.shape, np.nan)
     d[inside] = disp[rows[inside], cols[inside]]
     valid = np.isfinite(d)
