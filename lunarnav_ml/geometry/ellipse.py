@@ -398,6 +398,10 @@ def _plausible(ell: Ellipse, shape: tuple[int, ...]) -> bool:
     )
 
 
+# EllipseFitter's reason for an ellipse inscribed in the box instead of fitted to rim edges
+BOX_FALLBACK = "box_fallback"
+
+
 @dataclass
 class EllipseFitter:
     """Thin callable around :func:`fit_crater_ellipse` holding its settings, with a fallback.
@@ -440,7 +444,7 @@ class EllipseFitter:
             return fit
         if fit.quality >= self.box_fallback_quality and not self._too_wide_or_narrow(fit, box_xywh):
             return fit
-        return EllipseFit(Ellipse.from_box(box_xywh), fit.quality, "box_fallback", fit.n_points,
+        return EllipseFit(Ellipse.from_box(box_xywh), fit.quality, BOX_FALLBACK, fit.n_points,
                           fit.hull)
 
     def _too_wide_or_narrow(self, fit: EllipseFit, box_xywh: object) -> bool:

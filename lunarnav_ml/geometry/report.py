@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.spread import horizontal_spread
-from lunarnav_ml.geometry.ellipse import Ellipse, EllipseFitter
+from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
 from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater
 from lunarnav_ml.geometry.stereo import SGBMStereo
@@ -236,7 +236,7 @@ def _eval_crater(left: np.ndarray, right: np.ndarray | None, disp: np.ndarray, r
     t1 = time.perf_counter()
     if ellipse is None:
         return {**row, "reason": f"ellipse:{fit_reason}", "fit_s": t1 - t0}
-    from_box = cfg.source == "box" or fit_reason == "box_fallback"
+    from_box = cfg.source == "box" or fit_reason == BOX_FALLBACK
     res = lift_crater(ellipse, disp, rig, cfg.lifter, None if right is None else (left, right),
                       from_box=from_box)
     t2 = time.perf_counter()

@@ -16,7 +16,7 @@ import numpy as np
 
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.geometry._checks import as_image
-from lunarnav_ml.geometry.ellipse import Ellipse, EllipseFitter
+from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig
 from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater
 from lunarnav_ml.geometry.stereo import SGBMStereo
@@ -112,7 +112,7 @@ class StereoCraterLocalizer:
         if not fit.ok:
             return Crater3D(box, score, reason=f"ellipse:{fit.reason}")
         lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter, pair,
-                           from_box=fit.reason == "box_fallback")
+                           from_box=fit.reason == BOX_FALLBACK)
         return Crater3D(box, score, fit.ellipse, fit.quality, lift,
                         "ok" if lift.ok else f"lift:{lift.reason}")
 
