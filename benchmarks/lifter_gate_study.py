@@ -101,17 +101,22 @@ def _parse_bool(value: str) -> bool:
     return value == "true"
 
 
-_PARSERS = {"int": int, "float": float, "bool": _parse_bool, "str": str}
+_PARSERS = {"int": int, "float": float, "bool": _parse_bool, "str": str,
+            "float | None": lambda v: None if v.lower() == "none" else float(v)}
+
+
+def _report_rows(args: argparse.Namespace, gt: Path, folder: Path,
+                 settings: dict[str, Any]) -> list[dict[str, Any]]:
+    """The geometry report's rows of one set with these lifter settings (``--rows-only``: the
+    rows already in ``folder``)."""
+    if not args.rows_only:
+        geometry_report(gt, folder, ellipse_source=args.ellipse_source, plots=False,
+                        lifter=LifterConfig(**settings))
+    return load_json(folder / "geometry_craters.json", "geometry report rows")
 
 
 def _as_is(args: argparse.Namespace, settings: dict[str, Any]) -> int:
-    rows = []
-    for gt in args.gt:
-        part = args.out / gt.stem
-        if not args.rows_only:
-            geometry_report(gt, part, ellipse_source=args.ellipse_source, plots=False,
-                            lifter=LifterConfig(**settings))
-        rows += load_json(part / "geometry_craters.json", "geometry report rows")
+    rows = [r for gt in args.gt for r in _report_rows(args, gt, args.out / gt.stem, settings)]
     m = summarize(rows)
     print("3s centre 15-20 m, every D | mean | 3s centre 15-20 m, D = 5 / 10 / 15 / 20 | Pd(3D) |"
           " lifted")
@@ -144,18 +149,12 @@ def main(argv: list[str] | None = None) -> int:
         rows, retry = [], []
         for gt in args.gt:
             part = args.out / gt.stem
-            runs = [(part, settings)]
+            # open gate, one search and one crest rule a run: each row is the try it names
+            one = {**settings, "retry_snap_px": 0, "reach_far_arc": False,
+                   "max_rim_residual_px": 1e9}
+            rows += _report_rows(args, gt, part, one)
             if args.retry_snap:
-                runs.append((part / "retry", {**settings, "snap_px": args.retry_snap}))
-            for folder, run in runs:
-                if not args.rows_only:
-                    geometry_report(gt, folder, ellipse_source=args.ellipse_source, plots=False,
-                                    lifter=LifterConfig(**{**run, "retry_snap_px": 0,
-                                                           "reach_far_arc": False,
-                                                           "max_rim_residual_px": 1e9}))
-            rows += load_json(part / "geometry_craters.json", "geometry report rows")
-            if args.retry_snap:
-                retry += load_json(part / "retry" / "geometry_craters.json", "retry rows")
+                retry += _report_rows(args, gt, part / "retry", {**one, "snap_px": args.retry_snap})
         if retry and [r["ann_id"] for r in retry] != [r["ann_id"] for r in rows]:
             raise LunarNavError(f"{args.out}: the retry rows are not the same craters; run "
                                 f"again without --rows-only")

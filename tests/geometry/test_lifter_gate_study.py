@@ -17,6 +17,9 @@ def test_lifter_settings_are_typed_by_the_config_fields():
     assert got == {"snap_px": 12, "crest_match": False, "rim_offset": 0.1}
     assert isinstance(got["snap_px"], int)
     assert study._lifter_settings([]) == {}
+    # an optional threshold: a number, or none to turn it off
+    assert study._lifter_settings(["min_flank_rise_m=0.02"]) == {"min_flank_rise_m": 0.02}
+    assert study._lifter_settings(["min_flank_rise_m=none"]) == {"min_flank_rise_m": None}
 
 
 @pytest.mark.parametrize("item", ["snap=12", "snap_px", "snap_px=", "method"])
