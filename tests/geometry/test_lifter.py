@@ -264,9 +264,10 @@ def test_a_failed_lift_is_retried_with_a_wider_crest_search(crater_scene_side_su
     assert lift_crater(e, disp, sc.rig, LifterConfig(**gate)).crest_search_px == 6
 
 
-def test_a_third_try_takes_the_lowest_step_up_to_the_far_arc(crater_scene_side_sun):
-    """The ellipse 8 rows below the crest, beyond the searches' cap (half its height): the
-    third try finds the crest as the lowest disparity step between the far arc and the cap."""
+def test_the_lowest_step_rule_finds_a_crest_beyond_the_searches_cap(crater_scene_side_sun):
+    """The ellipse 8 rows below the crest, beyond the searches' cap (half its height), and a
+    tight gate: the largest-step lifts fail it; the lowest-step rule of the first search finds
+    the crest as the lowest disparity step between the far arc and the cap."""
     sc = crater_scene_side_sun
     e = sc.ellipse
     low = Ellipse(e.cx, e.cy + 8.0, e.a, e.b, e.angle_deg)
