@@ -15,7 +15,8 @@ Several sets pool their rows (each set's report in ``--out/<annotations file ste
 The lifter's retry (``LifterConfig.retry_snap_px``) is studied as it works: a second open-gate
 run with the crest searched ``--retry-snap`` rows (``--out/<stem>/retry``), whose row stands in
 for a crater's first row where that one fails a gate and the second passes (0: no retry). The
-lifter's later tries (``reach_far_arc``) are off in these runs, so each row is the try it names.
+lifter's second crest rule (``reach_far_arc``) is off in these runs, so each row is the one
+search and rule it names.
 
 ``--rows-only`` re-reads ``geometry_craters.json`` from ``--out`` instead of running again.
 ``--as-is`` runs the lifter with its own gates and all its tries (``--lifter`` settings
