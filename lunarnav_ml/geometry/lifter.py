@@ -72,9 +72,6 @@ class LiftResult:
             the search's reach below the near arc).
         flank_rise_m: "tangent": median over the near-rim samples of the crest's height above
             the terrain just in front of it (see ``LifterConfig.min_flank_rise_m``), m.
-        backdrop_gap_m: "tangent": median over the near-rim samples of how far the terrain
-            just above the crest in the image lies beyond the crest (camera depth; see
-            ``LifterConfig.max_backdrop_gap``), m.
     """
 
     ok: bool
@@ -92,7 +89,6 @@ class LiftResult:
     crest_search_px: int = 0
     crest_step: str = "largest"
     flank_rise_m: float = float("nan")
-    backdrop_gap_m: float = float("nan")
 
     @property
     def horizontal_sigma_m(self) -> float:
@@ -228,14 +224,6 @@ class LifterConfig:
             near at 15-20 m (a lift with no valid ground rows there is not judged). None
             turns the check off. Development sets (seed 1 shards 0-3
             and 4-6, seed 2 shards 0-3): see BENCHMARKS.md, issue 5, "A hidden near rim".
-        max_backdrop_gap: "tangent": just above a visible near rim in the image lies the
-            crater's own inside, at most about one diameter beyond the crest (the far rim). A
-            lift where the terrain 2 to ``2 + max(2, h / 4)`` rows above the crest lies more
-            than this many lifted diameters beyond it (the median over the near-rim samples)
-            is rejected as "crest_in_front": the edge it read is a swell of nearer ground
-            with the crater behind it, and the lift reads that swell (4 m too near for a 5 m
-            crater 18 m away on a development set). None turns the check off. BENCHMARKS.md,
-            issue 5, "Terrain behind the crest".
     """
 
     method: str = "tangent"
@@ -268,7 +256,6 @@ class LifterConfig:
     match_half_height: int = 0
     match_rows: tuple[int, int] = (1, 6)
     min_flank_rise_m: float | None = 0.0
-    max_backdrop_gap: float | None = 1.4
 
     def residual_limit_px(self, rim_disparity_px: float) -> float:
         """The "tangent" residual gate for a rim of this median disparity, px."""
@@ -744,16 +731,13 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
     diam = 2.0 * rho * np.sin(alpha)
     d_rim = float(np.median(d[ok]))
     rise = _flank_rise(disp, crest, rover[:, 2], rig, h)
-    gap = _backdrop_gap(disp, crest, rig, h)
-    base = {"flank_rise_m": rise, "backdrop_gap_m": gap, "n_rim": n_used, "rim_residual_px": rstd, "rim_height_m": z,
+    base = {"flank_rise_m": rise, "n_rim": n_used, "rim_residual_px": rstd, "rim_height_m": z,
             "rim_disparity_px": d_rim, "crest_fraction": float(np.mean(rows[ok] != crest_v0)),
             "crest_search_px": cfg.snap_px, "crest_step": "lowest" if lowest_step else "largest"}
     if rstd > cfg.residual_limit_px(d_rim):
         return LiftResult(False, "stereo_inconsistent", **base)
     if cfg.min_flank_rise_m is not None and rise <= cfg.min_flank_rise_m:  # NaN: not judged
         return LiftResult(False, "near_rim_hidden", **base)
-    if cfg.max_backdrop_gap is not None and gap > cfg.max_backdrop_gap * diam:  # NaN: not judged
-        return LiftResult(False, "crest_in_front", **base)
     var_rho = var[0, 0] * rho**4 * cfg.corr_factor + (cfg.rim_model_sigma * rho * np.sin(alpha))**2
     cov = _tangent_covariance(rho, var_rho, phi, alpha, rover, cfg, rig.focal_px)
     return LiftResult(True, "ok", center, diam, cov, rover, **base)
@@ -768,7 +752,12 @@ def _flank_rise(disp: np.ndarray, crest: np.ndarray, z_crest: np.ndarray, rig: S
     Shape:
         disp: (H, W); crest: (N, 2) px (column, crest row); z_crest: (N,) m.
     """
-    d, cols, rows = _column_samples(disp, crest, 2 + np.arange(max(3, round(h / 2))))
+    n_rows = max(3, round(h / 2))
+    rows = np.floor(crest[:, 1]).astype(np.int64)[:, None] + 2 + np.arange(n_rows)[None, :]
+    cols = np.broadcast_to(np.round(crest[:, 0]).astype(np.int64)[:, None], rows.shape)
+    inside = (rows >= 0) & (rows < disp.shape[0]) & (cols >= 0) & (cols < disp.shape[1])
+    d = np.full(rows.shape, np.nan)
+    d[inside] = disp[rows[inside], cols[inside]]
     valid = np.isfinite(d)
     if not valid.any():
         return float("nan")
@@ -779,43 +768,6 @@ def _flank_rise(disp: np.ndarray, crest: np.ndarray, z_crest: np.ndarray, rig: S
     if not enough.any():
         return float("nan")
     return float(np.median(z_crest[enough] - np.nanmedian(z[enough], axis=1)))
-
-
-def _backdrop_gap(disp: np.ndarray, crest: np.ndarray, rig: StereoRig, h: float) -> float:
-    """Median over the near-rim samples of the camera depth of the terrain 2 to
-    ``2 + max(2, h / 4)`` rows above the crest less that of the 3 rows below it (the crest),
-    each the median of its rows' valid disparities; NaN when no sample has both, m.
-
-    Shape:
-        disp: (H, W); crest: (N, 2) px (column, crest row).
-    """
-    above = _row_medians(_column_samples(disp, crest, -2 - np.arange(max(2, round(h / 4))))[0])
-    below = _row_medians(_column_samples(disp, crest, 1 + np.arange(3))[0])
-    ok = np.isfinite(above) & np.isfinite(below)
-    if not ok.any():
-        return float("nan")
-    f_b = rig.focal_px * rig.baseline_m
-    return float(np.median(f_b / above[ok] - f_b / below[ok]))
-
-
-def _row_medians(values: np.ndarray) -> np.ndarray:
-    """Median of each row's finite values; NaN for a row with none."""
-    out = np.full(len(values), np.nan)
-    some = np.isfinite(values).any(axis=1)
-    out[some] = np.nanmedian(values[some], axis=1)
-    return out
-
-
-def _column_samples(disp: np.ndarray, crest: np.ndarray, offsets: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Disparities at the given row offsets from each crest row, in its column: (N, M) values
-    (NaN outside the image), with their (N, M) columns and rows."""
-    rows = np.floor(crest[:, 1]).astype(np.int64)[:, None] + offsets[None, :]
-    cols = np.broadcast_to(np.round(crest[:, 0]).astype(np.int64)[:, None], rows.shape)
-    inside = (rows >= 0) & (rows < disp.shape[0]) & (cols >= 0) & (cols < disp.shape[1])
-    d = np.full(rows.shape, np.nan)
-    d[inside] = disp[rows[inside], cols[inside]]
-    return d, cols, rows
 
 
 def _tangent_covariance(rho: float, var_rho: float, phi: float, alpha: float, rover: np.ndarray,

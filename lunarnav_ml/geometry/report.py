@@ -245,8 +245,7 @@ def _eval_crater(left: np.ndarray, right: np.ndarray | None, disp: np.ndarray, r
                fit_quality=quality, reason=res.reason if res.ok else f"lift:{res.reason}",
                crest_search_px=res.crest_search_px, crest_step=res.crest_step,
                **{k: finite_or_none(getattr(res, k)) for k in
-                  ("rim_residual_px", "rim_disparity_px", "crest_fraction", "flank_rise_m",
-                                   "backdrop_gap_m")})
+                  ("rim_residual_px", "rim_disparity_px", "crest_fraction", "flank_rise_m")})
     if not res.ok:
         return row
     err = res.center_m[:2] - truth[:2]
