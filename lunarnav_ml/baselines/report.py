@@ -16,7 +16,6 @@ significant detection (range bins with Pd >= ``significant_pd`` for that diamete
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -28,9 +27,11 @@ from lunarnav_ml.baselines.lidar import LidarConfig, MapCrater, detect_craters_l
 from lunarnav_ml.baselines.stereo import StereoConfig, detect_craters_stereo
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.spread import horizontal_spread
+from lunarnav_ml.geometry._checks import check_crater_label
 from lunarnav_ml.geometry.frames import camera_to_rover
 from lunarnav_ml.utils import atomic
 from lunarnav_ml.utils.images import read_disparity
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 PAPER_3SIGMA_M = {"lidar": {5.0: 0.28, 10.0: 1.04, 15.0: 1.77, 20.0: 1.94},
                   "stereo": {5.0: 1.02, 10.0: 3.22, 15.0: 4.48, 20.0: 4.35}}
@@ -91,9 +92,11 @@ def baseline_report(
     if disparity not in DISPARITY_SOURCES:
         raise InputError(f"disparity: expected one of {DISPARITY_SOURCES}, got {disparity!r}")
     ann_path = _annotations_path(Path(dataset_dir))
-    gt = json.loads(ann_path.read_text())
+    gt = read_json_file(ann_path, "annotations", expect=dict)
+    if not isinstance(gt.get("images"), list):
+        raise InputError(f"{ann_path}: missing the 'images' list")
     images = gt["images"][:max_images] if max_images is not None else gt["images"]
-    craters = _craters_by_image(gt)
+    craters = _craters_by_image(ann_path, gt)
     if method == "lidar":
         # placements farther than four prior standard deviations (at least 1 m: a placement's
         # own error) from the prior are dropped
@@ -133,10 +136,16 @@ def _annotations_path(path: Path) -> Path:
     return ann
 
 
-def _craters_by_image(gt: dict[str, Any]) -> dict[int, list[dict[str, Any]]]:
+def _craters_by_image(path: Path, gt: dict[str, Any]) -> dict[int, list[dict[str, Any]]]:
+    """Crater labels with a 3D centre by image id, each checked (``check_crater_label``)."""
+    anns = gt.get("annotations")
+    if not isinstance(anns, list):
+        raise InputError(f"{path}: missing the 'annotations' list")
     out: dict[int, list[dict[str, Any]]] = {}
-    for a in gt["annotations"]:
-        if a.get("category_id") == 1 and "center_cam_m" in a and "diameter_m" in a:
+    for k, a in enumerate(anns):
+        if isinstance(a, dict) and a.get("category_id") == 1 and "center_cam_m" in a \
+                and "diameter_m" in a:
+            check_crater_label(a, f"{path}: annotations[{k}] (id {a.get('id')})")
             out.setdefault(a["image_id"], []).append(a)
     return out
 

@@ -19,19 +19,14 @@ from typing import Any
 
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.tta import TTAConfig, TTAPredictor, add_tta_arguments, tta_config
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 TASKS = ("detection", "geometry", "baselines-lidar", "baselines-stereo", "transfer")
 
 
 def load_json(path: Path, what: str) -> Any:
     """Read a JSON file, with one-line errors naming the file."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: {what} file not found")
-    try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise InputError(f"{path}: {what} is not valid JSON ({err})") from err
+    return read_json_file(path, what)
 
 
 def load_predictor(path: Path, threads: int, img_size: int | None = None,
@@ -101,8 +96,7 @@ def run_geometry(args: argparse.Namespace) -> int:
     """The 3D geometry report of ``lunarnav eval --task geometry``."""
     from lunarnav_ml.geometry.report import geometry_report
 
-    detections = load_json(args.test_results, "detections") if args.test_results else None
-    summary = geometry_report(Path(args.test_gt), args.out, detections=detections,
+    summary = geometry_report(Path(args.test_gt), args.out, detections=args.test_results,
                               ellipse_source=args.ellipse_source, disparity=args.disparity,
                               progress=not args.no_progress)
     print(json.dumps(summary.get("summary", summary), indent=1, default=str)[:2000])

@@ -76,3 +76,19 @@ def as_image(name: str, value: object) -> np.ndarray:
     if arr.size and arr.max() <= 1.0:
         arr = arr * 255.0
     return np.clip(np.rint(arr), 0, 255).astype(np.uint8)
+
+
+def check_crater_label(ann: object, where: str) -> None:
+    """A crater label as the geometry evaluations read it: ``bbox`` 4 finite numbers with a
+    positive width and height, ``diameter_m`` finite and positive, ``center_cam_m`` 3 finite
+    numbers; InputError naming ``where`` and the field otherwise."""
+    if not isinstance(ann, dict):
+        raise InputError(f"{where}: expected an object, got {type(ann).__name__}")
+    box = as_array(f"{where}: bbox", ann.get("bbox"), (4,))
+    if box[2] <= 0 or box[3] <= 0:
+        raise InputError(f"{where}: bbox {ann['bbox']} has non-positive width or height")
+    diam = ann.get("diameter_m")
+    if isinstance(diam, bool) or not isinstance(diam, (int, float)) or not np.isfinite(diam) \
+            or diam <= 0:
+        raise InputError(f"{where}: diameter_m must be a positive finite number, got {diam!r}")
+    as_array(f"{where}: center_cam_m", ann.get("center_cam_m"), (3,))

@@ -17,7 +17,6 @@ rejected) counts as a miss.
 
 from __future__ import annotations
 
-import json
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -29,12 +28,14 @@ from tqdm import tqdm
 
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.spread import horizontal_spread
+from lunarnav_ml.geometry._checks import as_array, check_crater_label
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
 from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.utils.atomic import finite_or_none, write_figure, write_json, write_text
 from lunarnav_ml.utils.images import read_disparity
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 PAPER_STEREO_3SIGMA_M = {5: 1.02, 10: 3.22, 15: 4.48, 20: 4.35}
 PAPER_LIDAR_3SIGMA_M = {5: 0.28, 10: 1.04, 15: 1.77, 20: 1.94}
@@ -90,14 +91,14 @@ def geometry_report(
     if disparity not in DISPARITY_SOURCES:
         raise InputError(f"disparity: expected one of {DISPARITY_SOURCES}, got {disparity!r}")
     ann_path = _annotations_path(dataset_dir)
-    coco = json.loads(ann_path.read_text())
+    coco = read_json_file(ann_path, "annotations", expect=dict)
     images = [im for im in coco.get("images", []) if im.get("right_file") and im.get("camera")]
     if not images:
         raise InputError(f"{ann_path}: no image has a right_file and a camera record")
     images = images[:max_images] if max_images is not None else images
     dets = _load_detections(detections, score_threshold)
     by_image = defaultdict(list)
-    for ann in coco.get("annotations", []):
+    for ann in _crater_labels(ann_path, coco):
         if _evaluated(ann, min_diameter_m):
             by_image[ann["image_id"]].append(ann)
     settings = _Settings(stereo, lifter or LifterConfig(), fitter or EllipseFitter(), ellipse_source,
@@ -138,16 +139,36 @@ def _evaluated(ann: dict[str, Any], min_diameter_m: float) -> bool:
             and "center_cam_m" in ann)
 
 
+def _crater_labels(path: Path, coco: dict[str, Any]) -> list[dict[str, Any]]:
+    """The annotations, each crater label with a 3D centre checked (``check_crater_label``)."""
+    anns = coco.get("annotations", [])
+    if not isinstance(anns, list):
+        raise InputError(f"{path}: 'annotations' must be a list")
+    for k, ann in enumerate(anns):
+        if isinstance(ann, dict) and ann.get("category_id") == 1 and "center_cam_m" in ann:
+            check_crater_label(ann, f"{path}: annotations[{k}] (id {ann.get('id')})")
+    return [a for a in anns if isinstance(a, dict)]
+
+
 def _load_detections(
     detections: str | Path | list[dict[str, Any]] | None, threshold: float
 ) -> dict[int, list[dict[str, Any]]]:
     if detections is None:
         return {}
+    origin = "detections"
     if isinstance(detections, (str, Path)):
-        path = Path(detections)
-        if not path.is_file():
-            raise InputError(f"{path}: detections file not found")
-        detections = json.loads(path.read_text())
+        origin = f"{detections}: detections"
+        detections = read_json_file(detections, "detections", expect=list)
+    for k, det in enumerate(detections):
+        where = f"{origin}[{k}]"
+        if not isinstance(det, dict) or "image_id" not in det:
+            raise InputError(f"{where}: expected a COCO result with an image_id")
+        box = as_array(f"{where}: bbox", det.get("bbox"), (4,))
+        if box[2] <= 0 or box[3] <= 0:
+            raise InputError(f"{where}: bbox {det['bbox']} has non-positive width or height")
+        score = det.get("score", 1.0)
+        if isinstance(score, bool) or not isinstance(score, (int, float)) or not np.isfinite(score):
+            raise InputError(f"{where}: score must be a finite number, got {score!r}")
     out: dict[int, list[dict[str, Any]]] = defaultdict(list)
     for det in detections:
         if det.get("category_id") == 1 and float(det.get("score", 1.0)) >= threshold:
@@ -170,8 +191,11 @@ def _default_stereo(width: int) -> SGBMStereo:
 def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
                 dets: list[dict[str, Any]] | None, cfg: _Settings) -> list[dict[str, Any]]:
     """Disparity once, then one row per labelled crater."""
+    try:
+        rig = StereoRig.from_camera_record(im["camera"])
+    except InputError as err:
+        raise InputError(f"{root / im['file_name']} (image id {im['id']}): {err}") from None
     left = _read_gray(root, im["file_name"])
-    rig = StereoRig.from_camera_record(im["camera"])
     t0 = time.perf_counter()
     right = None
     if cfg.disparity == "rendered":  # the right image is not needed

@@ -76,3 +76,24 @@ def test_lidar_prior_offset_limit_follows_the_prior_sigma(tmp_path, monkeypatch)
     assert seen == [4.0, 10.0, 1.0]
     with pytest.raises(InputError, match="prior_sigma_m"):
         report.baseline_report(tmp_path, tmp_path / "out", prior_sigma_m=float("nan"))
+
+
+_LABEL = ('{"images": [], "annotations": [{"id": 7, "image_id": 1, "category_id": 1, '
+          '"bbox": [1, 1, 2, 2], "diameter_m": %s, "center_cam_m": %s}]}')
+
+
+@pytest.mark.parametrize("text, message", [
+    ('{"images": [', "not valid JSON"),
+    ('{"images": [], "annotations": {}}', "missing the 'annotations' list"),
+    (_LABEL % ("-5", "[0, 1, 9]"), r"annotations\[0\] \(id 7\): diameter_m"),
+    (_LABEL % ("5", "[0, NaN, 9]"), r"\(id 7\): center_cam_m: contains NaN"),
+])
+def test_malformed_annotations_name_the_file_and_field(tmp_path, text, message):
+    from lunarnav_ml.baselines.report import baseline_report
+
+    bad = tmp_path / "bad.json"
+    bad.write_text(text)
+    with pytest.raises(InputError, match=message) as err:
+        baseline_report(bad, tmp_path / "out", method="stereo")
+    assert str(bad) in str(err.value)
+    assert not (tmp_path / "out").exists()

@@ -70,6 +70,46 @@ def test_report_bad_inputs(tmp_path, dataset):
         geometry_report(dataset, tmp_path / "out", ellipse_source="magic")
 
 
+@pytest.mark.parametrize("field, value, message", [
+    ("bbox", None, r"annotations\[0\] \(id 1\): bbox: expected shape \(4\)"),
+    ("bbox", [1.0, 2.0, -3.0, 4.0], "non-positive width or height"),
+    ("diameter_m", None, "diameter_m must be a positive finite number"),
+    ("diameter_m", float("nan"), "diameter_m must be a positive finite number"),
+    ("center_cam_m", [float("nan"), 0.0, 9.0], "center_cam_m: contains NaN"),
+    ("center_cam_m", [0.0, 9.0], r"center_cam_m: expected shape \(3\)"),
+])
+def test_malformed_crater_labels_name_the_file_and_field(dataset, tmp_path, field, value, message):
+    coco = json.loads((dataset / "annotations.json").read_text())
+    coco["annotations"][0][field] = value
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(coco))
+    with pytest.raises(InputError, match=f"bad.json: {message}" if "annotations" in message
+                       else message) as err:
+        geometry_report(bad, tmp_path / "out", plots=False)
+    assert str(bad) in str(err.value)
+    assert not (tmp_path / "out").exists()  # nothing written
+
+
+def test_corrupt_json_and_bad_detections_name_the_file(dataset, tmp_path):
+    bad = tmp_path / "corrupt.json"
+    bad.write_text('{"images": [')
+    with pytest.raises(InputError, match="corrupt.json: annotations is not valid JSON"):
+        geometry_report(bad, tmp_path / "out")
+    listed = tmp_path / "listed.json"
+    listed.write_text("[]")
+    with pytest.raises(InputError, match="listed.json: annotations must hold an object"):
+        geometry_report(listed, tmp_path / "out")
+    dets = tmp_path / "dets.json"
+    dets.write_text(json.dumps([{"image_id": 1, "category_id": 1, "bbox": [1, 2, None, 3]}]))
+    with pytest.raises(InputError, match=r"dets.json: detections\[0\]: bbox"):
+        geometry_report(dataset, tmp_path / "out", detections=dets)
+    (tmp_path / "cam.json").write_text(json.dumps({**json.loads(
+        (dataset / "annotations.json").read_text()), "images": [
+        {**json.loads((dataset / "annotations.json").read_text())["images"][0], "camera": {"fx": 100.0}}]}))
+    with pytest.raises(InputError, match=r"0.png \(image id 1\): camera: missing key"):
+        geometry_report(tmp_path / "cam.json", tmp_path / "out")
+
+
 def test_summarize_three_sigma_known_answer():
     rows = [{"diameter_m": 5.0, "near_rim_range_m": 16.0, "ok": True, "reason": "ok",
              "center_err_m": e, "center_err_xy_m": [e, 0.0], "diameter_err_m": -e,
