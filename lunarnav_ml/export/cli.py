@@ -81,6 +81,7 @@ def _add_bench(subparsers: argparse._SubParsersAction) -> None:
 def run_bench(args: argparse.Namespace) -> int:
     """Print one line per (model, size, threads)."""
     from lunarnav_ml.export.bench import bench_onnx, conv_flops
+    from lunarnav_ml.runtime.session import open_session
 
     if not args.onnx and args.checkpoint is None:
         raise ConfigError("bench: give --onnx FILE(S) and/or --checkpoint")
@@ -90,6 +91,8 @@ def run_bench(args: argparse.Namespace) -> int:
         raise ConfigError(f"bench: --frame-size must be positive, got {args.frame_size}")
     kw = {"runs": args.runs, "warmup": args.warmup, "conf_thres": args.conf,
           "network_only": args.network_only}
+    for path in args.onnx:  # every file checked before the first timing line
+        open_session(path)
     for path in args.onnx:
         for size in args.sizes:
             gflop = conv_flops(path, size) / 1e9

@@ -115,13 +115,11 @@ class Detector:
     def to_coco_results(preds: list[dict[str, np.ndarray]], image_ids: list[int]
                         ) -> list[dict[str, Any]]:
         """Predictions of several images as COCO results (bbox as x, y, w, h)."""
+        from lunarnav_ml.eval.predict import to_coco_results
+
         if len(preds) != len(image_ids):
             raise InputError(f"{len(preds)} predictions for {len(image_ids)} image ids")
-        return [{"image_id": int(image_id), "category_id": int(label),
-                 "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])],
-                 "score": float(score)}
-                for pred, image_id in zip(preds, image_ids)
-                for b, score, label in zip(pred["boxes"], pred["scores"], pred["labels"])]
+        return [r for pred, image_id in zip(preds, image_ids) for r in to_coco_results(pred, image_id)]
 
     def save(self, path: str | Path, half: bool = False) -> Path:
         """Write a slim ``.pt`` file (weights + config) that :func:`load_detector` reads;

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from lunarnav_ml.errors import ConfigError
-from lunarnav_ml.eval.tta import TTAPredictor, add_tta_arguments, tta_config
+from lunarnav_ml.eval.tta import add_tta_arguments, tta_config
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
 
@@ -26,7 +26,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "images and a gallery.png contact sheet under --out.")
     p.add_argument("source", type=Path, help="image file or folder of images")
     p.add_argument("--weights", type=Path, default=None,
-                   help=f"checkpoint (.ckpt) or slim weights (.pt); default {DEFAULT_WEIGHTS}")
+                   help="checkpoint (.ckpt), slim weights (.pt) or an exported ONNX model (.onnx, "
+                        f"run by the torch-free onboard runtime); default {DEFAULT_WEIGHTS}")
+    p.add_argument("--threads", type=int, default=2, help="onnxruntime threads (.onnx weights)")
     p.add_argument("--out", type=Path, default=Path("outputs/detect"), help="output folder")
     p.add_argument("--conf", type=float, default=0.001, help="score threshold of results.json")
     p.add_argument("--iou", type=float, default=0.6, help="NMS IoU threshold")
@@ -53,7 +55,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 def run_detect(args: argparse.Namespace) -> int:
     """Detect on the source images and write results and overlays."""
-    from lunarnav_ml.training.api import load_detector
+    from lunarnav_ml.eval.cli import load_predictor
     from lunarnav_ml.training.detect import detect_files, list_images
 
     for name in ("conf", "iou", "overlay_conf"):
@@ -62,15 +64,15 @@ def run_detect(args: argparse.Namespace) -> int:
                               f"got {getattr(args, name)}")
     if args.batch < 1:
         raise ConfigError(f"--batch must be >= 1, got {args.batch}")
+    if args.threads < 1:
+        raise ConfigError(f"--threads must be >= 1, got {args.threads}")
     if args.gallery < 0:
         raise ConfigError(f"--gallery must be >= 0, got {args.gallery}")
     weights = args.weights or DEFAULT_WEIGHTS
     if args.weights is None and not weights.is_file():
         raise ConfigError(f"no --weights given and no shipped weights at {weights}")
     files = list_images(args.source)
-    detector = load_detector(weights, args.img_size)
-    if (tta := tta_config(args)) is not None:
-        detector = TTAPredictor(detector, tta)
+    detector = load_predictor(weights, args.threads, args.img_size, tta_config(args))
     out = detect_files(detector, files, args.out, conf_thres=args.conf, iou_thres=args.iou,
                        overlay_thres=args.overlay_conf, batch=args.batch,
                        progress=not args.quiet, gallery=args.gallery)

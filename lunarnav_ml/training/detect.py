@@ -10,7 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lunarnav_ml.errors import InputError
-from lunarnav_ml.training.api import Detector
+from lunarnav_ml.eval.predict import Predictor, to_coco_results
 from lunarnav_ml.utils import atomic
 from lunarnav_ml.utils.images import IMAGE_SUFFIXES, caption_tile, contact_sheet, read_rgb
 
@@ -53,12 +53,16 @@ def gallery_indices(n_files: int, n: int) -> set[int]:
     return {int(i) for i in np.linspace(0, n_files - 1, min(n, n_files)).round()}
 
 
-def detect_files(detector: Detector, files: list[Path], out_dir: Path, *, conf_thres: float,
+def detect_files(detector: Predictor, files: list[Path], out_dir: Path, *, conf_thres: float,
                  iou_thres: float, overlay_thres: float, batch: int = 8, progress: bool = True,
                  gallery: int = 12) -> dict[str, Any]:
     """Detect on image files; write ``results.json`` (COCO results), ``images.json`` (ids to
     files), ``overlays/<stem>.jpg`` and, when ``gallery`` > 0, ``gallery.png`` (a contact sheet
     of up to ``gallery`` overlays spread over the files) under ``out_dir``.
+
+    Args:
+        detector: the torch ``Detector``, the onboard runtime's ``OnnxDetector``, or either
+            wrapped in test-time augmentation (``predict`` and ``class_names``).
 
     Returns:
         ``{"images": [...], "results": [...]}`` as written.
@@ -71,7 +75,7 @@ def detect_files(detector: Detector, files: list[Path], out_dir: Path, *, conf_t
         rgb = [read_rgb(f) for f in chunk]
         preds = detector.predict(rgb, conf_thres=conf_thres, iou_thres=iou_thres)
         ids = list(range(start + 1, start + 1 + len(chunk)))
-        results += detector.to_coco_results(preds, ids)
+        results += [r for image_id, pred in zip(ids, preds) for r in to_coco_results(pred, image_id)]
         for image_id, path, image, pred in zip(ids, chunk, rgb, preds):
             images_meta.append({"id": image_id, "file_name": str(path),
                                 "width": image.shape[1], "height": image.shape[0]})

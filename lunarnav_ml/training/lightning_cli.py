@@ -19,6 +19,7 @@ from lightning.pytorch.cli import LightningCLI
 from lunarnav_ml.data.datamodule import DetectionDataModule
 from lunarnav_ml.errors import REPORTED_ERRORS
 from lunarnav_ml.training.module import DetectorModule
+from lunarnav_ml.utils.yamlfile import read_yaml
 
 
 class DetectorCLI(LightningCLI):
@@ -34,10 +35,23 @@ def run_cli(args: Sequence[str] | None = None, run: bool = True, prog: str | Non
     """Parse ``args`` (default: ``sys.argv``) and run the chosen Lightning subcommand."""
     # ``lunarnav train`` passes its own arguments on purpose; Lightning warns about that.
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
+    for path in config_files(sys.argv[1:] if args is None else args):
+        read_yaml(path, "config file")  # one-line ConfigError for a missing or malformed file
     return DetectorCLI(DetectorModule, DetectionDataModule, args=list(args) if args is not None
                        else None, run=run, seed_everything_default=0,
                        save_config_kwargs={"overwrite": True},
                        parser_kwargs={"prog": prog} if prog else None)
+
+
+def config_files(args: Sequence[str]) -> list[str]:
+    """The files given to ``--config`` / ``-c`` (``--config=FILE`` too) in CLI arguments."""
+    files = []
+    for k, arg in enumerate(args):
+        if arg in ("--config", "-c") and k + 1 < len(args):
+            files.append(args[k + 1])
+        elif arg.startswith("--config="):
+            files.append(arg.split("=", 1)[1])
+    return files
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -18,4 +18,5 @@ def read_yaml(path: str | Path, what: str = "YAML file") -> Any:
     try:
         return yaml.safe_load(path.read_text())
     except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML ({err})") from None
+        detail = " ".join(str(err).split())  # PyYAML's message spans lines: one line here
+        raise ConfigError(f"{path}: not valid YAML ({detail})") from None

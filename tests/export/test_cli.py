@@ -8,7 +8,7 @@ import cv2
 import pytest
 
 from lunarnav_ml.cli import build_parser
-from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.export.bench import synthetic_frame
 from lunarnav_ml.export.cli import main
 from lunarnav_ml.runtime import OnnxDetector
@@ -87,6 +87,15 @@ def test_bench_needs_a_model():
     args = parse("bench")
     with pytest.raises(ConfigError, match="--onnx"):
         args.func(args)
+
+
+def test_bench_checks_every_file_before_timing(onnx_path, tmp_path, capsys):
+    bad = tmp_path / "cut.onnx"
+    bad.write_bytes(onnx_path.read_bytes()[:300])
+    args = parse("bench", "--onnx", str(onnx_path), str(bad), "--sizes", "64", "--runs", "1")
+    with pytest.raises(InputError, match="cut.onnx: not a loadable ONNX model"):
+        args.func(args)
+    assert capsys.readouterr().out == ""  # no timing line printed before the error
 
 
 def test_errors_are_one_line_exit_2(tmp_path, capsys):

@@ -101,6 +101,34 @@ def test_detect_bad_inputs(weights, tmp_path):
         args.func(args)
 
 
+def test_detect_runs_an_exported_onnx_model_like_its_checkpoint(weights, tiny_coco, tmp_path):
+    """An .onnx file runs through the torch-free runtime; same boxes as the checkpoint."""
+    from lunarnav_ml.export.onnx_export import export_onnx
+
+    onnx_file = export_onnx(weights, tmp_path / "model.onnx")
+    folder = tiny_coco["val"].parent / "images" / "left"
+    out = {}
+    for name, w in (("ckpt", weights), ("onnx", onnx_file)):
+        args = _parser().parse_args(["detect", str(folder), "--weights", str(w), "--out",
+                                     str(tmp_path / name), "--quiet", "--conf", "0.001",
+                                     "--threads", "1"])
+        assert args.func(args) == 0
+        out[name] = json.loads((tmp_path / name / "results.json").read_text())
+    assert out["ckpt"]
+    for a in out["ckpt"]:  # each checkpoint box has its twin from onnxruntime
+        twins = [b for b in out["onnx"] if (b["image_id"], b["category_id"]) ==
+                 (a["image_id"], a["category_id"]) and abs(b["score"] - a["score"]) < 1e-3
+                 and np.abs(np.subtract(b["bbox"], a["bbox"])).max() < 0.5]
+        assert twins, a
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(onnx_file.read_bytes()[:200])
+    args = _parser().parse_args(["detect", str(folder), "--weights", str(bad), "--out",
+                                 str(tmp_path / "x"), "--quiet"])
+    with pytest.raises(InputError, match="bad.onnx"):
+        args.func(args)
+    assert not (tmp_path / "x").exists()
+
+
 def test_train_forwards_to_lightning_cli(capsys):
     args = _parser().parse_args(["train", "fit", "--help"])
     assert args.cli_args == ["fit", "--help"]

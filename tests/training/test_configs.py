@@ -71,3 +71,16 @@ def test_train_py_reports_bad_input_in_one_line(tiny_coco, tmp_path, monkeypatch
     assert code == 2
     assert err[-1].startswith("train.py: error: ") and "bad.json" in err[-1] and "bbox" in err[-1]
     assert not any("Traceback" in line for line in err)
+
+
+@pytest.mark.parametrize("flag", ["--config", "-c", "--config="])
+def test_train_py_reports_a_malformed_config_in_one_line(tmp_path, capsys, flag):
+    from lunarnav_ml.training.lightning_cli import main
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("model:\n  preset: [nano\ndata: {}\n")
+    args = ["fit", flag + str(bad)] if flag.endswith("=") else ["fit", flag, str(bad)]
+    code = main(args)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert err[0].startswith(f"train.py: error: {bad}: not valid YAML")
