@@ -6,7 +6,6 @@ a missing or corrupt image, a box outside its image, an unknown category, an emp
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ import cv2
 import numpy as np
 
 from lunarnav_ml.errors import InputError
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 CLASS_NAMES = ("crater", "rock", "artifact")  # category ids 1, 2, 3
 BOX_TOLERANCE_PX = 1.0  # a box may overhang its image by this much (rounding), no more
@@ -42,15 +42,7 @@ class ImageRecord:
 
 def read_json(path: Path) -> dict[str, Any]:
     """Read a COCO JSON file, raising ``InputError`` if it is missing or not valid JSON."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: annotation file not found")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise InputError(f"{path}: not valid JSON ({err})") from err
-    if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a COCO object at the top level")
+    data = read_json_file(path, "annotation", expect=dict)
     for key in ("images", "annotations", "categories"):
         if not isinstance(data.get(key), list):
             raise InputError(f"{path}: missing the '{key}' list")

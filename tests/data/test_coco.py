@@ -61,7 +61,7 @@ def test_missing_or_invalid_json(tmp_path):
         load_coco(tmp_path / "nope.json")
     bad = tmp_path / "bad.json"
     bad.write_text("{")
-    with pytest.raises(InputError, match="bad.json: not valid JSON"):
+    with pytest.raises(InputError, match="bad.json: annotation is not valid JSON"):
         load_coco(bad)
 
 
