@@ -183,11 +183,6 @@ def _read_gray(root: Path, rel: str) -> np.ndarray:
     return img
 
 
-def _default_stereo(width: int) -> SGBMStereo:
-    """SGBM sized to the image: 128 disparities at 1024 px (ground ~1.2 m ahead at 0.3 m)."""
-    return SGBMStereo(num_disparities=int(max(32, 16 * round(width / 128))))
-
-
 def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
                 dets: list[dict[str, Any]] | None, cfg: _Settings) -> list[dict[str, Any]]:
     """Disparity once, then one row per labelled crater."""
@@ -203,7 +198,7 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
     else:
         right = _read_gray(root, im["right_file"])
         rows_needed = _rows_needed(anns, left.shape[0], cfg.lifter)
-        disp = (cfg.stereo or _default_stereo(left.shape[1]))(left, right, rows_needed).disparity
+        disp = (cfg.stereo or SGBMStereo.for_width(left.shape[1]))(left, right, rows_needed).disparity
     stereo_s = time.perf_counter() - t0
     rows = []
     for ann in anns:

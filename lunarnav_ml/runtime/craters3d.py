@@ -76,7 +76,8 @@ class StereoCraterLocalizer:
         rig: the rectified rig and its pose on the rover.
         conf_thres: operating score threshold of crater boxes.
         iou_thres: NMS IoU threshold.
-        stereo: disparity stage (SGBM settings).
+        stereo: disparity stage (SGBM settings); default sized to each frame's width
+            (:meth:`SGBMStereo.for_width`, as the geometry evaluation runs it).
         fitter: rim ellipse stage.
         lifter: range lifter thresholds (default :class:`LifterConfig`).
     """
@@ -91,7 +92,7 @@ class StereoCraterLocalizer:
         self.detector, self.rig = detector, rig
         self.crater_label = names.index("crater") + 1
         self.conf_thres, self.iou_thres = conf_thres, iou_thres
-        self.stereo = stereo or SGBMStereo()
+        self.stereo = stereo
         self.fitter = fitter or EllipseFitter()
         self.lifter = lifter or LifterConfig()
 
@@ -101,6 +102,11 @@ class StereoCraterLocalizer:
                                     iou_thres=self.iou_thres)[0]
         mine = det["labels"] == self.crater_label
         return det["boxes"][mine], det["scores"][mine]
+
+    def disparity(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """Left-reference disparity (H, W) of a rectified pair (gray or RGB), px; NaN invalid.
+        Without ``stereo`` settings SGBM is sized to the frame (:meth:`SGBMStereo.for_width`)."""
+        return (self.stereo or SGBMStereo.for_width(left.shape[1]))(left, right).disparity
 
     def localize_box(self, left: np.ndarray, disparity: np.ndarray, box: np.ndarray,
                      score: float, pair: tuple[np.ndarray, np.ndarray] | None = None) -> Crater3D:
@@ -135,6 +141,6 @@ class StereoCraterLocalizer:
         if len(boxes) == 0:
             return []
         pair = (as_image("left", left), as_image("right", right))  # gray once a frame
-        disparity = self.stereo(*pair).disparity
+        disparity = self.disparity(*pair)
         return [self.localize_box(left, disparity, b, float(s), pair)
                 for b, s in zip(boxes, scores)]

@@ -159,3 +159,12 @@ def test_textureless_images_give_all_invalid_disparity():
     res = compute_disparity(img, img, num_disparities=16)
     assert res.disparity.shape == img.shape
     assert not res.valid.any() and np.isnan(res.disparity).all()
+
+
+def test_sgbm_sized_to_the_frame():
+    from lunarnav_ml.geometry.stereo import SGBMStereo
+
+    assert SGBMStereo.for_width(1024).num_disparities == 128
+    assert SGBMStereo.for_width(640).num_disparities == 80
+    assert SGBMStereo.for_width(100).num_disparities == 32
+    assert all(SGBMStereo.for_width(w).num_disparities % 16 == 0 for w in (100, 333, 777, 2048))

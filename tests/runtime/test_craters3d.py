@@ -57,7 +57,7 @@ def test_the_lifter_reads_the_crest_from_the_pair(scene):
     assert on.ok and plain.ok
     assert on.center_m[0] != plain.center_m[0]
     box = TruthDetector(scene.box).boxes[0]
-    disp = off.stereo(rgb(scene.left), rgb(scene.right)).disparity
+    disp = off.disparity(rgb(scene.left), rgb(scene.right))
     no_pair = off.localize_box(rgb(scene.left), disp, box, 0.9)
     np.testing.assert_array_equal(no_pair.center_m, plain.center_m)
 

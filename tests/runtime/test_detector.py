@@ -32,7 +32,7 @@ left = (rng.random((100, 140, 3)) * 255).astype(np.uint8)
 right = np.roll(left, -4, axis=1)
 loc = StereoCraterLocalizer(det, StereoRig(70.0, 0.3, 69.5, 49.5, 1.5, 10.0), conf_thres=0.02)
 craters = loc(left, right)
-one = loc.localize_box(left, loc.stereo(left, right).disparity, np.array([30., 20., 90., 70.]), 0.5)
+one = loc.localize_box(left, loc.disparity(left, right), np.array([30., 20., 90., 70.]), 0.5)
 craters = [*craters, one]
 heavy = sorted({m.split('.')[0] for m in sys.modules} & set(HEAVY))
 print(json.dumps({"n": len(out[0]["boxes"]), "craters": len(craters), "heavy": heavy}))
