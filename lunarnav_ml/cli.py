@@ -22,6 +22,7 @@ STAGE_CLI_MODULES = (
     "lunarnav_ml.eval.cli",  # lunarnav eval
     "lunarnav_ml.realdata.cli",  # lunarnav import-real
     "lunarnav_ml.export.cli",  # lunarnav export, lunarnav bench
+    "lunarnav_ml.runtime.cli",  # lunarnav localize
     "lunarnav_ml.demo",  # lunarnav demo
 )
 

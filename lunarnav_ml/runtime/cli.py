@@ -1,0 +1,152 @@
+"""``lunarnav localize``: the craters of one rectified stereo pair in 3D (rover frame: x forward,
+y left, z up, m) through the onboard pipeline (:class:`StereoCraterLocalizer`: detect, rim
+ellipse, stereo lift). An ``.onnx`` model runs torch-free; a checkpoint loads through torch."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from lunarnav_ml.errors import ConfigError, InputError
+
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
+CAMERA_KEYS = ("fx", "fy", "cx", "cy", "baseline_m", "height_m", "pitch_deg", "roll_deg")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``lunarnav localize``."""
+    p = subparsers.add_parser(
+        "localize", help="craters in 3D (rover frame) from a rectified stereo pair",
+        description="Detect the craters of the left image, fit each rim ellipse and lift it "
+                    "with the pair's disparity to a centre and diameter in the rover frame "
+                    "(x forward, y left, z up, m). Writes craters3d.json and overlay.jpg "
+                    "under --out.")
+    p.add_argument("left", type=Path, help="rectified left image")
+    p.add_argument("right", type=Path, help="rectified right image (same size)")
+    p.add_argument("--camera", type=Path, required=True,
+                   help="JSON camera record: fx, fy, cx, cy (px), baseline_m, height_m, "
+                        "pitch_deg, roll_deg (optional); a `lunarnav synth` image record "
+                        "holding it under 'camera' also works")
+    p.add_argument("--weights", type=Path, default=None,
+                   help="exported .onnx model (torch-free runtime) or a checkpoint (.pt, "
+                        f".ckpt); default {DEFAULT_WEIGHTS}")
+    p.add_argument("--conf", type=float, default=0.25, help="crater score threshold")
+    p.add_argument("--iou", type=float, default=0.6, help="NMS IoU threshold")
+    p.add_argument("--img-size", type=int, default=None,
+                   help="network input side, px (default the model's own)")
+    p.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    p.add_argument("--out", type=Path, default=Path("outputs/localize"), help="output folder")
+    p.set_defaults(func=run_localize)
+
+
+def read_camera(path: Path) -> dict[str, float]:
+    """The camera record of a JSON file (the record itself or an object with ``camera``)."""
+    from lunarnav_ml.utils.jsonfile import read_json_file
+
+    data = read_json_file(path, "camera", expect=dict)
+    record = data.get("camera", data)
+    if not isinstance(record, dict):
+        raise InputError(f"{path}: 'camera' must be an object")
+    out = {}
+    for key in CAMERA_KEYS:
+        value = record.get(key, 0.0 if key == "roll_deg" else None)
+        if value is None:
+            raise InputError(f"{path}: camera: missing key {key!r} (needs {', '.join(CAMERA_KEYS)})")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not np.isfinite(value):
+            raise InputError(f"{path}: camera: {key} must be a finite number, got {value!r}")
+        out[key] = float(value)
+    return out
+
+
+def run_localize(args: argparse.Namespace) -> int:
+    """Localize the pair's craters; write ``craters3d.json`` and ``overlay.jpg``."""
+    from lunarnav_ml.geometry.frames import StereoRig
+    from lunarnav_ml.runtime.craters3d import StereoCraterLocalizer
+    from lunarnav_ml.utils import atomic
+    from lunarnav_ml.utils.images import read_rgb
+
+    for name in ("conf", "iou"):
+        if not 0.0 <= getattr(args, name) <= 1.0:
+            raise ConfigError(f"--{name} must lie in [0, 1], got {getattr(args, name)}")
+    if args.threads < 1:
+        raise ConfigError(f"--threads must be >= 1, got {args.threads}")
+    camera = read_camera(args.camera)
+    try:
+        rig = StereoRig.from_camera_record(camera)
+    except InputError as err:
+        raise InputError(f"{args.camera}: {err}") from None
+    left, right = read_rgb(args.left), read_rgb(args.right)
+    if left.shape != right.shape:
+        raise InputError(f"{args.right}: {right.shape[1]}x{right.shape[0]} px, but the left "
+                         f"image is {left.shape[1]}x{left.shape[0]}")
+    weights = args.weights or DEFAULT_WEIGHTS
+    localizer = StereoCraterLocalizer(_load_detector(weights, args.threads, args.img_size), rig,
+                                      conf_thres=args.conf, iou_thres=args.iou)
+    craters = localizer(left, right)
+    record = {"left": str(args.left), "right": str(args.right), "camera": camera,
+              "weights": str(weights), "conf": args.conf, "iou": args.iou,
+              "frame": "rover: x forward, y left, z up, m",
+              "craters": [crater_record(c) for c in craters]}
+    atomic.write_json(args.out / "craters3d.json", record)
+    atomic.write_image(args.out / "overlay.jpg", draw_craters(left, craters))
+    for c in craters:
+        where = (f"centre ({c.center_m[0]:.2f}, {c.center_m[1]:.2f}, {c.center_m[2]:.2f}) m, "
+                 f"D {c.diameter_m:.2f} m" if c.ok else c.reason)
+        print(f"crater score {c.score:.2f}: {where}")
+    n_ok = sum(c.ok for c in craters)
+    print(f"lunarnav localize: {len(craters)} crater boxes, {n_ok} in 3D -> "
+          f"{args.out / 'craters3d.json'}")
+    return 0
+
+
+def _load_detector(weights: Path, threads: int, img_size: int | None) -> Any:
+    """``.onnx``: the torch-free :class:`OnnxDetector`; anything else a torch checkpoint."""
+    if weights.suffix == ".onnx":
+        from lunarnav_ml.runtime.detector import OnnxDetector
+
+        return OnnxDetector(weights, threads=threads, img_size=img_size)
+    from lunarnav_ml.training.api import load_detector
+
+    return load_detector(weights, img_size)
+
+
+def crater_record(crater: Any) -> dict[str, Any]:
+    """One :class:`Crater3D` as JSON: box (xyxy px), score, ellipse (cx, cy, a, b, angle_deg),
+    and for a lifted crater its centre, diameter, 1-sigma horizontal error and covariance."""
+    from lunarnav_ml.utils.atomic import finite_or_none
+
+    out: dict[str, Any] = {
+        "box": [float(v) for v in crater.box], "score": float(crater.score), "ok": crater.ok,
+        "reason": crater.reason,
+        "ellipse": None if crater.ellipse is None else crater.ellipse.to_array().tolist(),
+        "ellipse_quality": float(crater.ellipse_quality)}
+    if crater.ok:
+        out.update(center_m=crater.center_m.tolist(), diameter_m=float(crater.diameter_m),
+                   sigma_horizontal_m=finite_or_none(crater.lift.horizontal_sigma_m),
+                   covariance_xyzd=crater.lift.covariance.tolist())
+    return out
+
+
+def draw_craters(image: np.ndarray, craters: list[Any]) -> np.ndarray:
+    """BGR overlay: each crater box (green lifted, orange not), its rim ellipse and its
+    diameter and range."""
+    out = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    thick = max(1, round(image.shape[1] / 640))
+    for c in craters:
+        color = (60, 220, 60) if c.ok else (0, 140, 255)
+        x0, y0, x1, y1 = (round(float(v)) for v in c.box)
+        cv2.rectangle(out, (x0, y0), (x1, y1), color, thick)
+        if c.ellipse is not None:
+            e = c.ellipse
+            cv2.ellipse(out, ((float(e.cx), float(e.cy)), (2 * float(e.a), 2 * float(e.b)),
+                              float(e.angle_deg)), (255, 200, 0), thick)
+        text = (f"D {c.diameter_m:.1f} m @ {np.hypot(*c.center_m[:2]):.1f} m" if c.ok
+                else c.reason.split(":")[-1])
+        cv2.putText(out, text, (x0, max(12, y0 - 4)), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.4 * thick, color, thick, cv2.LINE_AA)
+    return out

@@ -1,0 +1,103 @@
+"""``lunarnav localize``: a rendered stereo pair with known truth, through the CLI."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from lunarnav_ml.cli import main
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.runtime.cli import DEFAULT_WEIGHTS, read_camera
+from tests.geometry.geometry_scene import render_crater_scene
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """A 5 m crater 8 m ahead at 640 x 480: left, right and camera files, and the scene."""
+    sc = render_crater_scene(5.0, 8.0, size=(640, 480), pitch_deg=10.0, sun_zenith_deg=60.0,
+                             sun_azimuth_deg=30.0, seed=3)
+    root = tmp_path_factory.mktemp("pair")
+    cv2.imwrite(str(root / "left.png"), sc.left)
+    cv2.imwrite(str(root / "right.png"), sc.right)
+    r = sc.rig
+    camera = {"fx": r.focal_px, "fy": r.focal_px, "cx": r.cx, "cy": r.cy,
+              "baseline_m": r.baseline_m, "height_m": r.height_m, "pitch_deg": r.pitch_deg}
+    (root / "camera.json").write_text(json.dumps({"id": 1, "camera": camera}))  # an image record
+    return root, sc
+
+
+def _run(root, *extra):
+    return main(["localize", str(root / "left.png"), str(root / "right.png"), "--camera",
+                 str(root / "camera.json"), *extra])
+
+
+def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
+    root, sc = pair
+    assert DEFAULT_WEIGHTS.is_file()
+    assert _run(root, "--out", str(tmp_path)) == 0
+    out = json.loads((tmp_path / "craters3d.json").read_text())
+    lifted = [c for c in out["craters"] if c["ok"]]
+    assert lifted, out["craters"]
+    best = max(lifted, key=lambda c: c["score"])
+    d = sc.crater.diameter
+    assert np.hypot(*(np.array(best["center_m"][:2]) - sc.center_rover[:2])) < max(1.0, 0.25 * d)
+    assert abs(best["diameter_m"] - d) < 0.25 * d
+    assert np.array(best["covariance_xyzd"]).shape == (4, 4) and best["sigma_horizontal_m"] > 0
+    assert cv2.imread(str(tmp_path / "overlay.jpg")).shape == (480, 640, 3)
+    assert "in 3D ->" in capsys.readouterr().out
+
+
+def test_an_onnx_model_runs_through_the_onboard_runtime(pair, onnx_path, tmp_path):
+    root, _ = pair
+    assert _run(root, "--weights", str(onnx_path), "--conf", "0.01", "--threads", "1",
+                "--out", str(tmp_path)) == 0
+    out = json.loads((tmp_path / "craters3d.json").read_text())
+    assert all(c["ok"] == ("center_m" in c) for c in out["craters"])
+    assert out["weights"] == str(onnx_path)
+
+
+def test_read_camera(tmp_path):
+    path = tmp_path / "cam.json"
+    cam = {"fx": 500, "fy": 500, "cx": 320, "cy": 240, "baseline_m": 0.3, "height_m": 1.5,
+           "pitch_deg": 10}
+    path.write_text(json.dumps(cam))
+    assert read_camera(path) == {**{k: float(v) for k, v in cam.items()}, "roll_deg": 0.0}
+    path.write_text(json.dumps({**cam, "baseline_m": None}))
+    with pytest.raises(InputError, match="cam.json: camera: missing key 'baseline_m'"):
+        read_camera(path)
+    path.write_text(json.dumps({**cam, "fx": "wide"}))
+    with pytest.raises(InputError, match="cam.json: camera: fx must be a finite number"):
+        read_camera(path)
+
+
+@pytest.mark.parametrize("case", ["camera_nan", "camera_corrupt", "sizes", "left_missing",
+                                  "conf"])
+def test_bad_inputs_are_one_line_and_write_nothing(pair, tmp_path, capsys, case):
+    root, _ = pair
+    work = tmp_path / "in"
+    work.mkdir()
+    for name in ("left.png", "right.png", "camera.json"):
+        (work / name).write_bytes((root / name).read_bytes())
+    extra, expect = [], {
+        "camera_nan": "camera.json: camera: fx must be a finite number",
+        "camera_corrupt": "camera.json: camera is not valid JSON",
+        "sizes": "right.png: 320x240 px, but the left image is 640x480",
+        "left_missing": "left.png: image file not found",
+        "conf": "--conf must lie in [0, 1]"}[case]
+    if case == "camera_nan":
+        rec = json.loads((work / "camera.json").read_text())
+        rec["camera"]["fx"] = float("nan")
+        (work / "camera.json").write_text(json.dumps(rec))
+    elif case == "camera_corrupt":
+        (work / "camera.json").write_text('{"camera": {')
+    elif case == "sizes":
+        cv2.imwrite(str(work / "right.png"), np.zeros((240, 320), np.uint8))
+    elif case == "left_missing":
+        (work / "left.png").unlink()
+    else:
+        extra = ["--conf", "1.5"]
+    code = _run(work, *extra, "--out", str(tmp_path / "out"))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and expect in err[0], err
+    assert not (tmp_path / "out").exists()
