@@ -91,6 +91,7 @@ def run_localize(args: argparse.Namespace) -> int:
     record = {"left": str(args.left), "right": str(args.right), "camera": camera,
               "weights": str(weights), "conf": args.conf, "iou": args.iou,
               "frame": "rover: x forward, y left, z up, m",
+              "timing_ms": {k: round(v, 1) for k, v in localizer.timing_ms.items()},
               "craters": [crater_record(c) for c in craters]}
     atomic.write_json(args.out / "craters3d.json", record)
     atomic.write_image(args.out / "overlay.jpg", draw_craters(left, craters))
@@ -99,7 +100,8 @@ def run_localize(args: argparse.Namespace) -> int:
                  f"D {c.diameter_m:.2f} m" if c.ok else c.reason)
         print(f"crater score {c.score:.2f}: {where}")
     n_ok = sum(c.ok for c in craters)
-    print(f"lunarnav localize: {len(craters)} crater boxes, {n_ok} in 3D -> "
+    took = ", ".join(f"{k} {v:.0f} ms" for k, v in localizer.timing_ms.items())
+    print(f"lunarnav localize: {len(craters)} crater boxes, {n_ok} in 3D ({took}) -> "
           f"{args.out / 'craters3d.json'}")
     return 0
 

@@ -45,7 +45,9 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     assert abs(best["diameter_m"] - d) < 0.25 * d
     assert np.array(best["covariance_xyzd"]).shape == (4, 4) and best["sigma_horizontal_m"] > 0
     assert cv2.imread(str(tmp_path / "overlay.jpg")).shape == (480, 640, 3)
-    assert "in 3D ->" in capsys.readouterr().out
+    assert set(out["timing_ms"]) == {"detect", "stereo", "craters"}
+    assert all(v > 0 for v in out["timing_ms"].values())
+    assert "in 3D (detect " in capsys.readouterr().out
 
 
 def test_an_onnx_model_runs_through_the_onboard_runtime(pair, onnx_path, tmp_path):
