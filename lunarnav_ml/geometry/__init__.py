@@ -30,7 +30,7 @@ from lunarnav_ml.geometry.frames import (
     camera_to_rover_rotation,
     rover_to_camera,
 )
-from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater
+from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater, rows_needed
 from lunarnav_ml.geometry.stereo import (
     DisparityResult,
     SGBMStereo,
@@ -48,5 +48,5 @@ __all__ = [
     "disparity_to_points", "fit_crater_ellipse", "fit_ellipse_points", "lift_crater",
     "match_strips", "parse_cahv",
     "pinhole_backproject", "pinhole_from_fov", "pinhole_project", "pinhole_to_cahv",
-    "rectify_cahv_pair", "rectify_images", "rover_to_camera",
+    "rectify_cahv_pair", "rectify_images", "rover_to_camera", "rows_needed",
 ]

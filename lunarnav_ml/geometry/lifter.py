@@ -352,6 +352,21 @@ def lift_crater(
     return LiftResult(True, "ok", center, diam, cov, rim_pts, **base)
 
 
+def rows_needed(boxes_xywh: np.ndarray, height: int, cfg: LifterConfig | None = None
+                ) -> tuple[int, int]:
+    """Image rows [first, last) that lifting these crater boxes reads: each box, and the ground
+    patch below it ("plane"'s ``ground_gap`` and ``ground_rows``), with a margin; SGBM can be
+    run on that band alone (``SGBMStereo(..., rows=...)``).
+
+    Shape:
+        boxes_xywh: (K, 4) px, K >= 1.
+    """
+    cfg = cfg or LifterConfig()
+    b = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
+    bottoms = b[:, 1] + b[:, 3] * (1 + cfg.ground_gap + cfg.ground_rows) + 40
+    return max(int(b[:, 1].min()) - 10, 0), min(int(bottoms.max()) + 10, height)
+
+
 def _tries(cfg: LifterConfig) -> list[list[tuple[LifterConfig, bool]]]:
     """The "tangent" lifts, one list per crest search in the order tried (``snap_px``, then
     ``retry_snap_px``), each (settings, lowest-step crest rule): the largest-step rule, and

@@ -31,7 +31,7 @@ from lunarnav_ml.eval.spread import horizontal_spread
 from lunarnav_ml.geometry._checks import as_array, check_crater_label
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
-from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater
+from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater, rows_needed
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.utils.atomic import finite_or_none, write_figure, write_json, write_text
 from lunarnav_ml.utils.images import read_disparity
@@ -197,8 +197,8 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
         disp = read_disparity(root, im)
     else:
         right = _read_gray(root, im["right_file"])
-        rows_needed = _rows_needed(anns, left.shape[0], cfg.lifter)
-        disp = (cfg.stereo or SGBMStereo.for_width(left.shape[1]))(left, right, rows_needed).disparity
+        rows = rows_needed(np.array([a["bbox"] for a in anns]), left.shape[0], cfg.lifter)
+        disp = (cfg.stereo or SGBMStereo.for_width(left.shape[1]))(left, right, rows).disparity
     stereo_s = time.perf_counter() - t0
     rows = []
     for ann in anns:
@@ -207,14 +207,6 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
                    sun_zenith_deg=im.get("sun_zenith_deg"), sun_azimuth_deg=im.get("sun_azimuth_deg"))
         rows.append(row)
     return rows
-
-
-def _rows_needed(anns: list[dict[str, Any]], height: int, lifter: LifterConfig) -> tuple[int, int]:
-    """Image rows the lifter reads for these craters: each box, and the ground patch below."""
-    tops = [a["bbox"][1] for a in anns]
-    bottoms = [a["bbox"][1] + a["bbox"][3] * (1 + lifter.ground_gap + lifter.ground_rows) + 40
-               for a in anns]
-    return max(int(min(tops)) - 10, 0), min(int(max(bottoms)) + 10, height)
 
 
 def _box_for(ann: dict[str, Any], dets: list[dict[str, Any]] | None) -> np.ndarray | None:

@@ -19,7 +19,7 @@ from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.geometry._checks import as_image
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig
-from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater
+from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater, rows_needed
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.runtime.preprocess import check_image
 
@@ -105,10 +105,12 @@ class StereoCraterLocalizer:
         mine = det["labels"] == self.crater_label
         return det["boxes"][mine], det["scores"][mine]
 
-    def disparity(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        """Left-reference disparity (H, W) of a rectified pair (gray or RGB), px; NaN invalid.
-        Without ``stereo`` settings SGBM is sized to the frame (:meth:`SGBMStereo.for_width`)."""
-        return (self.stereo or SGBMStereo.for_width(left.shape[1]))(left, right).disparity
+    def disparity(self, left: np.ndarray, right: np.ndarray,
+                  rows: tuple[int, int] | None = None) -> np.ndarray:
+        """Left-reference disparity (H, W) of a rectified pair (gray or RGB), px; NaN invalid
+        (and outside ``rows`` [first, last) when given). Without ``stereo`` settings SGBM is
+        sized to the frame (:meth:`SGBMStereo.for_width`)."""
+        return (self.stereo or SGBMStereo.for_width(left.shape[1]))(left, right, rows).disparity
 
     def localize_box(self, left: np.ndarray, disparity: np.ndarray, box: np.ndarray,
                      score: float, pair: tuple[np.ndarray, np.ndarray] | None = None) -> Crater3D:
@@ -148,7 +150,9 @@ class StereoCraterLocalizer:
         if len(boxes) == 0:
             return []
         pair = (as_image("left", left), as_image("right", right))  # gray once a frame
-        disparity = self.disparity(*pair)
+        xywh = np.column_stack([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]])
+        # only the rows the boxes' lifts read, as the geometry evaluation matches them
+        disparity = self.disparity(*pair, rows=rows_needed(xywh, left.shape[0], self.lifter))
         t2 = time.perf_counter()
         craters = [self.localize_box(left, disparity, b, float(s), pair)
                    for b, s in zip(boxes, scores)]
