@@ -5,6 +5,7 @@ ellipse, stereo lift). An ``.onnx`` model runs torch-free; a checkpoint loads th
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--img-size", type=int, default=None,
                    help="network input side, px (default the model's own)")
     p.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    p.add_argument("--sgbm-mode", default="hh", choices=("hh", "hh4", "3way"),
+                   help="SGBM aggregation: hh (8 paths, the evaluated default), hh4 (about half "
+                        "the time), 3way (about a fifth); the faster modes lift less exactly "
+                        "(BENCHMARKS.md, issue 8, 'lunarnav localize')")
     p.add_argument("--out", type=Path, default=Path("outputs/localize"), help="output folder")
     p.set_defaults(func=run_localize)
 
@@ -66,6 +71,7 @@ def read_camera(path: Path) -> dict[str, float]:
 def run_localize(args: argparse.Namespace) -> int:
     """Localize the pair's craters; write ``craters3d.json`` and ``overlay.jpg``."""
     from lunarnav_ml.geometry.frames import StereoRig
+    from lunarnav_ml.geometry.stereo import SGBMStereo
     from lunarnav_ml.runtime.craters3d import StereoCraterLocalizer
     from lunarnav_ml.utils import atomic
     from lunarnav_ml.utils.images import read_rgb
@@ -85,11 +91,13 @@ def run_localize(args: argparse.Namespace) -> int:
         raise InputError(f"{args.right}: {right.shape[1]}x{right.shape[0]} px, but the left "
                          f"image is {left.shape[1]}x{left.shape[0]}")
     weights = args.weights or DEFAULT_WEIGHTS
+    stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     localizer = StereoCraterLocalizer(_load_detector(weights, args.threads, args.img_size), rig,
-                                      conf_thres=args.conf, iou_thres=args.iou)
+                                      conf_thres=args.conf, iou_thres=args.iou, stereo=stereo)
     craters = localizer(left, right)
     record = {"left": str(args.left), "right": str(args.right), "camera": camera,
               "weights": str(weights), "conf": args.conf, "iou": args.iou,
+              "sgbm": {"mode": stereo.mode, "num_disparities": stereo.num_disparities},
               "frame": "rover: x forward, y left, z up, m",
               "timing_ms": {k: round(v, 1) for k, v in localizer.timing_ms.items()},
               "craters": [crater_record(c) for c in craters]}

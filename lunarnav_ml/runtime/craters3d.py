@@ -154,7 +154,7 @@ class StereoCraterLocalizer:
         # only the rows the boxes' lifts read, as the geometry evaluation matches them
         disparity = self.disparity(*pair, rows=rows_needed(xywh, left.shape[0], self.lifter))
         t2 = time.perf_counter()
-        craters = [self.localize_box(left, disparity, b, float(s), pair)
+        craters = [self.localize_box(pair[0], disparity, b, float(s), pair)
                    for b, s in zip(boxes, scores)]
         self.timing_ms.update(stereo=1e3 * (t2 - t1), craters=1e3 * (time.perf_counter() - t2))
         return craters
