@@ -152,6 +152,32 @@ def fit_ellipse_points(points: np.ndarray, *, refine: bool = True, scale_px: flo
     return Ellipse(*(float(x) for x in init))
 
 
+def _sampson_jacobian(params: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """d :func:`_sampson` / d (cx, cy, log a, log b, angle in degrees), analytic.
+
+    Shape:
+        pts: (N, 2) -> (N, 5).
+    """
+    cx, cy, a, b, ang = params
+    t = np.radians(ang)
+    c, s = np.cos(t), np.sin(t)
+    dx, dy = pts[:, 0] - cx, pts[:, 1] - cy
+    x, y = c * dx + s * dy, -s * dx + c * dy
+    u, v = x / a**2, y / b**2
+    n2 = np.maximum(u**2 + v**2, 1e-24)
+    g = 2.0 * np.sqrt(n2)
+    r = (x * u + y * v - 1.0) / g
+    dr_dx = 2.0 * u / g - r * u / (n2 * a**2)
+    dr_dy = 2.0 * v / g - r * v / (n2 * b**2)
+    return np.column_stack([
+        -c * dr_dx + s * dr_dy,                       # cx
+        -s * dr_dx - c * dr_dy,                       # cy
+        -2.0 * x * u / g + 2.0 * r * u**2 / n2,       # log a
+        -2.0 * y * v / g + 2.0 * r * v**2 / n2,       # log b
+        np.radians(1.0) * (y * dr_dx - x * dr_dy),    # angle, degrees
+    ])
+
+
 def _refine(init: np.ndarray, pts: np.ndarray, scale_px: float) -> np.ndarray:
     """Robust Sampson-distance refinement over (cx, cy, log a, log b, angle)."""
 
@@ -161,10 +187,13 @@ def _refine(init: np.ndarray, pts: np.ndarray, scale_px: float) -> np.ndarray:
     def residual(p: np.ndarray) -> np.ndarray:
         return _sampson(unpack(p), pts)
 
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        return _sampson_jacobian(unpack(p), pts)
+
     x0 = np.array([init[0], init[1], np.log(init[2]), np.log(init[3]), init[4]])
     sol = scipy.optimize.least_squares(
-        residual, x0, loss="soft_l1", f_scale=scale_px, method="trf", max_nfev=200,
-        x_scale=np.array([1.0, 1.0, 0.01, 0.01, 1.0]),
+        residual, x0, jac=jacobian, loss="soft_l1", f_scale=scale_px, method="trf",
+        max_nfev=200, x_scale=np.array([1.0, 1.0, 0.01, 0.01, 1.0]),
     )
     out = unpack(sol.x) if sol.success and np.all(np.isfinite(sol.x)) else init
     return out

@@ -172,3 +172,20 @@ def test_fitter_falls_back_where_the_fit_is_wider_or_narrower_than_the_box(crate
     np.testing.assert_allclose(strict.ellipse.to_array(), Ellipse.from_box(sc.box).to_array())
     assert strict.quality == own.quality
     assert EllipseFitter(max_width_mismatch=0.0)(sc.left, sc.box).reason == "ok"
+
+
+def test_the_refinements_analytic_jacobian_matches_finite_differences():
+    from lunarnav_ml.geometry.ellipse import _sampson, _sampson_jacobian
+
+    pts = np.random.default_rng(0).normal(size=(50, 2)) * [40.0, 10.0] + [100.0, 50.0]
+    for p in ([100.0, 50.0, np.log(40.0), np.log(10.0), 12.0],
+              [98.0, 52.0, np.log(35.0), np.log(14.0), -70.0]):
+        p = np.asarray(p)
+
+        def unpack(q):
+            return np.array([q[0], q[1], np.exp(q[2]), np.exp(q[3]), q[4]])
+
+        step = 1e-6 * np.eye(5)  # central differences, one parameter at a time
+        numeric = np.column_stack([(_sampson(unpack(p + e), pts) - _sampson(unpack(p - e), pts))
+                                   / 2e-6 for e in step])
+        np.testing.assert_allclose(_sampson_jacobian(unpack(p), pts), numeric, atol=1e-5)
