@@ -530,8 +530,9 @@ def _line_at(rows: np.ndarray, values: np.ndarray, at: float) -> float:
     ok = np.isfinite(values)
     if ok.sum() < 3:
         return np.nan
-    slope, icpt = np.polyfit(rows[ok].astype(float), values[ok], 1)
-    return float(slope * at + icpt)
+    r, d = rows[ok].astype(float), values[ok].astype(float)
+    rc = r - r.mean()  # closed-form least squares (np.polyfit's SVD, 10x slower per call)
+    return float(d.mean() + (rc @ (d - d.mean())) / (rc @ rc) * (at - r.mean()))
 
 
 def _relative_steps(column: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray] | None:

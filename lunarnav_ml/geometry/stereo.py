@@ -287,7 +287,7 @@ def match_strips(
         if r0 < 0 or r1 > h or x0 < 0 or x1 > w or int(u) + half_width + 1 > w:
             continue
         tmpl = lf[r0:r1, int(u) - half_width : int(u) + half_width + 1].astype(np.float32)
-        if float(tmpl.std()) < 1e-3:
+        if float(cv2.meanStdDev(tmpl)[1][0, 0]) < 1e-3:  # no texture (np.std, 10x slower)
             continue
         strip = rf[r0:r1, x0:x1].astype(np.float32)
         score = cv2.matchTemplate(strip, tmpl, cv2.TM_CCOEFF_NORMED)[0]
