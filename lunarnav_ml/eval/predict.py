@@ -9,6 +9,7 @@ from typing import Any, Protocol
 import numpy as np
 from tqdm import tqdm
 
+from lunarnav_ml.errors import InputError
 from lunarnav_ml.utils.images import read_rgb
 
 
@@ -57,6 +58,37 @@ def predict_coco(
             results.extend(to_coco_results(pred, record["id"]))
         bar.update(len(records))
     bar.close()
+    return results
+
+
+def check_coco_results(results: Any, origin: str) -> list[dict[str, Any]]:
+    """COCO results as the evaluations read them: a list of objects, each with an integer
+    ``image_id`` and ``category_id``, a ``bbox`` of 4 finite numbers [x, y, w, h] with w, h >= 0
+    and a finite ``score`` (1 when absent); ``InputError`` naming ``origin``, the entry and the
+    field otherwise.
+
+    Returns:
+        ``results``, unchanged.
+    """
+    if not isinstance(results, list):
+        raise InputError(f"{origin}: expected a list of COCO results, got {type(results).__name__}")
+    for k, det in enumerate(results):
+        where = f"{origin}[{k}]"
+        if not isinstance(det, dict):
+            raise InputError(f"{where}: expected an object, got {type(det).__name__}")
+        for key in ("image_id", "category_id"):
+            if isinstance(det.get(key), bool) or not isinstance(det.get(key), int):
+                raise InputError(f"{where}: {key} must be an integer, got {det.get(key)!r}")
+        box = det.get("bbox")
+        if not isinstance(box, list) or len(box) != 4 or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+                for v in box):
+            raise InputError(f"{where}: bbox must be 4 finite numbers [x, y, w, h], got {box!r}")
+        if box[2] < 0 or box[3] < 0:
+            raise InputError(f"{where}: bbox {box} has a negative width or height")
+        score = det.get("score", 1.0)
+        if isinstance(score, bool) or not isinstance(score, (int, float)) or not np.isfinite(score):
+            raise InputError(f"{where}: score must be a finite number, got {score!r}")
     return results
 
 

@@ -27,8 +27,9 @@ import numpy as np
 from tqdm import tqdm
 
 from lunarnav_ml.errors import InputError
+from lunarnav_ml.eval.predict import check_coco_results
 from lunarnav_ml.eval.spread import horizontal_spread
-from lunarnav_ml.geometry._checks import as_array, check_crater_label
+from lunarnav_ml.geometry._checks import check_crater_label
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
 from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater, rows_needed
@@ -159,16 +160,7 @@ def _load_detections(
     if isinstance(detections, (str, Path)):
         origin = f"{detections}: detections"
         detections = read_json_file(detections, "detections", expect=list)
-    for k, det in enumerate(detections):
-        where = f"{origin}[{k}]"
-        if not isinstance(det, dict) or "image_id" not in det:
-            raise InputError(f"{where}: expected a COCO result with an image_id")
-        box = as_array(f"{where}: bbox", det.get("bbox"), (4,))
-        if box[2] <= 0 or box[3] <= 0:
-            raise InputError(f"{where}: bbox {det['bbox']} has non-positive width or height")
-        score = det.get("score", 1.0)
-        if isinstance(score, bool) or not isinstance(score, (int, float)) or not np.isfinite(score):
-            raise InputError(f"{where}: score must be a finite number, got {score!r}")
+    check_coco_results(detections, origin)
     out: dict[int, list[dict[str, Any]]] = defaultdict(list)
     for det in detections:
         if det.get("category_id") == 1 and float(det.get("score", 1.0)) >= threshold:
