@@ -31,10 +31,10 @@ from typing import Any
 import numpy as np
 
 from lunarnav_ml.errors import LunarNavError
-from lunarnav_ml.eval.cli import load_json
 from lunarnav_ml.geometry.lifter import LifterConfig
 from lunarnav_ml.geometry.report import geometry_report
 from lunarnav_ml.utils.atomic import write_figure, write_json
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 
 def needed_offsets(rows: list[dict[str, Any]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
             if not args.rows_only:
                 geometry_report(gt, part, ellipse_source=args.ellipse_source, lifter=zero,
                                 plots=False)
-            rows += load_json(part / "geometry_craters.json", "geometry report rows")
+            rows += read_json_file(part / "geometry_craters.json", "geometry report rows")
         # fitted ellipses and box ellipses (the fitter's fallback) get their own offsets
         for prefix, from_box in (("", False), ("box_", True)):
             group = [r for r in rows if bool(r.get("from_box")) == from_box]

@@ -32,9 +32,9 @@ from pathlib import Path
 from typing import Any
 
 from lunarnav_ml.errors import LunarNavError
-from lunarnav_ml.eval.cli import load_json
 from lunarnav_ml.geometry.lifter import LifterConfig
 from lunarnav_ml.geometry.report import geometry_report, summarize
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 # (absolute px, fraction of the rim disparity, least crest fraction)
 GATES = [(1e9, 0.0, 0.0), (1.5, 0.0, 0.0), (1.0, 0.05, 0.0), (1.5, 0.08, 0.0), (1.5, 0.10, 0.0),
@@ -113,7 +113,7 @@ def _report_rows(args: argparse.Namespace, gt: Path, folder: Path,
     if not args.rows_only:
         geometry_report(gt, folder, ellipse_source=args.ellipse_source, plots=False,
                         lifter=LifterConfig(**settings))
-    return load_json(folder / "geometry_craters.json", "geometry report rows")
+    return read_json_file(folder / "geometry_craters.json", "geometry report rows")
 
 
 def _as_is(args: argparse.Namespace, settings: dict[str, Any]) -> int:

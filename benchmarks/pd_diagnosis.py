@@ -35,7 +35,6 @@ import torch
 from torchvision.ops import batched_nms, box_convert, box_iou
 
 from lunarnav_ml.errors import LunarNavError
-from lunarnav_ml.eval.cli import load_json
 from lunarnav_ml.eval.coco_metrics import coco_ap
 from lunarnav_ml.eval.pd import (
     MatchResult,
@@ -48,6 +47,7 @@ from lunarnav_ml.eval.pd import (
 from lunarnav_ml.eval.predict import predict_coco
 from lunarnav_ml.training.api import load_detector
 from lunarnav_ml.utils import atomic
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 CRATER = 1
 THIRDS = (("fresh", 0.0, 1 / 3), ("half-degraded", 1 / 3, 2 / 3), ("degraded", 2 / 3, 1.01))
@@ -197,9 +197,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="detections JSON: read when present, else written")
     args = parser.parse_args(argv)
     try:
-        gt = load_json(args.gt, "ground truth")
+        gt = read_json_file(args.gt, "ground truth")
         if args.cache is not None and args.cache.exists():
-            results = load_json(args.cache, "cached detections")
+            results = read_json_file(args.cache, "cached detections")
         else:
             results = predict_coco(load_detector(args.checkpoint, img_size=args.img_size), gt,
                                    args.gt.parent, progress=False)

@@ -22,8 +22,8 @@ import sys
 from pathlib import Path
 
 from lunarnav_ml.errors import LunarNavError
-from lunarnav_ml.eval.cli import load_json
 from lunarnav_ml.utils.atomic import write_json
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 
 def in_half(k: int) -> bool:
@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
                                     items=[k for k in range(len(grid(args.protocol))) if in_half(k)])
         else:
             path = args.root / "annotations.json"
-        coco = load_json(path, "COCO annotations")
+        coco = read_json_file(path, "COCO annotations")
     except LunarNavError as err:
         print(f"protocol_subset: error: {err}", file=sys.stderr)
         return 2

@@ -27,7 +27,7 @@ from lunarnav_ml.baselines.lidar import LidarConfig, MapCrater, detect_craters_l
 from lunarnav_ml.baselines.stereo import StereoConfig, detect_craters_stereo
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.spread import horizontal_spread
-from lunarnav_ml.geometry._checks import check_crater_label
+from lunarnav_ml.geometry._checks import crater_labels_3d
 from lunarnav_ml.geometry.frames import camera_to_rover
 from lunarnav_ml.utils import atomic
 from lunarnav_ml.utils.images import read_disparity
@@ -137,16 +137,10 @@ def _annotations_path(path: Path) -> Path:
 
 
 def _craters_by_image(path: Path, gt: dict[str, Any]) -> dict[int, list[dict[str, Any]]]:
-    """Crater labels with a 3D centre by image id, each checked (``check_crater_label``)."""
-    anns = gt.get("annotations")
-    if not isinstance(anns, list):
-        raise InputError(f"{path}: missing the 'annotations' list")
+    """Crater labels with a 3D centre by image id, each checked (``crater_labels_3d``)."""
     out: dict[int, list[dict[str, Any]]] = {}
-    for k, a in enumerate(anns):
-        if isinstance(a, dict) and a.get("category_id") == 1 and "center_cam_m" in a \
-                and "diameter_m" in a:
-            check_crater_label(a, f"{path}: annotations[{k}] (id {a.get('id')})")
-            out.setdefault(a["image_id"], []).append(a)
+    for a in crater_labels_3d(path, gt):
+        out.setdefault(a["image_id"], []).append(a)
     return out
 
 

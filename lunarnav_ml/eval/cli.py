@@ -18,16 +18,10 @@ from pathlib import Path
 from typing import Any
 
 from lunarnav_ml.errors import InputError
-from lunarnav_ml.eval.predict import check_coco_results
+from lunarnav_ml.eval.predict import read_coco_results
 from lunarnav_ml.eval.tta import TTAConfig, TTAPredictor, add_tta_arguments, tta_config
-from lunarnav_ml.utils.jsonfile import read_json_file
 
 TASKS = ("detection", "geometry", "baselines-lidar", "baselines-stereo", "transfer")
-
-
-def load_json(path: Path, what: str) -> Any:
-    """Read a JSON file, with one-line errors naming the file."""
-    return read_json_file(path, what)
 
 
 def load_predictor(path: Path, threads: int, img_size: int | None = None,
@@ -55,8 +49,7 @@ def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]
     gt, _ = read_coco(gt_path)  # validated labels, every image file present
     results_path = getattr(args, f"{split}_results")
     if results_path is not None:
-        return gt, check_coco_results(load_json(results_path, "detections"),
-                                      f"{results_path}: detections")
+        return gt, read_coco_results(results_path)
     if args.model is None:
         raise InputError(f"eval: give --model or --{split}-results for the {split} split")
     predictor = load_predictor(args.model, args.threads, args.img_size, tta_config(args))
@@ -134,8 +127,7 @@ def run_transfer(args: argparse.Namespace) -> int:
     gt, _ = read_coco(gt_path)  # validated labels, every image file present
     title = f"Transfer report: {args.test_gt}"
     if args.test_results is not None:
-        results = check_coco_results(load_json(args.test_results, "detections"),
-                                     f"{args.test_results}: detections")
+        results = read_coco_results(args.test_results)
     else:  # load_predictor runs .onnx files through onnxruntime, checkpoints through torch
         predictor = load_predictor(args.onnx or args.checkpoint or args.model, args.threads,
                                    args.img_size, tta_config(args))

@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.utils.images import read_rgb
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 
 class Predictor(Protocol):
@@ -90,6 +91,20 @@ def check_coco_results(results: Any, origin: str) -> list[dict[str, Any]]:
         if isinstance(score, bool) or not isinstance(score, (int, float)) or not np.isfinite(score):
             raise InputError(f"{where}: score must be a finite number, got {score!r}")
     return results
+
+
+def read_coco_results(path: str | Path) -> list[dict[str, Any]]:
+    """A COCO results file, read and checked (:func:`check_coco_results`); one-line
+    ``InputError`` naming the file when it is missing, not JSON or malformed."""
+    origin = f"{path}: detections"
+    return check_coco_results(read_json_file(path, "detections", expect=list), origin)
+
+
+def coco_results(preds: list[dict[str, np.ndarray]], image_ids: list[int]) -> list[dict[str, Any]]:
+    """Several images' predictions as COCO results (:func:`to_coco_results` each)."""
+    if len(preds) != len(image_ids):
+        raise InputError(f"{len(preds)} predictions for {len(image_ids)} image ids")
+    return [r for pred, image_id in zip(preds, image_ids) for r in to_coco_results(pred, image_id)]
 
 
 def to_coco_results(pred: dict[str, np.ndarray], image_id: int) -> list[dict[str, Any]]:

@@ -78,6 +78,24 @@ def as_image(name: str, value: object) -> np.ndarray:
     return np.clip(np.rint(arr), 0, 255).astype(np.uint8)
 
 
+def crater_labels_3d(path: object, coco: dict) -> list[dict]:
+    """The crater labels (category 1) of a COCO object that carry a 3D centre
+    (``center_cam_m``), each checked (:func:`check_crater_label`); errors name ``path``.
+
+    Raises:
+        InputError: no 'annotations' list, or a malformed crater label.
+    """
+    anns = coco.get("annotations")
+    if not isinstance(anns, list):
+        raise InputError(f"{path}: missing the 'annotations' list")
+    out = []
+    for k, ann in enumerate(anns):
+        if isinstance(ann, dict) and ann.get("category_id") == 1 and "center_cam_m" in ann:
+            check_crater_label(ann, f"{path}: annotations[{k}] (id {ann.get('id')})")
+            out.append(ann)
+    return out
+
+
 def check_crater_label(ann: object, where: str) -> None:
     """A crater label as the geometry evaluations read it: ``bbox`` 4 finite numbers with a
     positive width and height, ``diameter_m`` finite and positive, ``center_cam_m`` 3 finite

@@ -27,9 +27,9 @@ import numpy as np
 from tqdm import tqdm
 
 from lunarnav_ml.errors import InputError
-from lunarnav_ml.eval.predict import check_coco_results
+from lunarnav_ml.eval.predict import check_coco_results, read_coco_results
 from lunarnav_ml.eval.spread import horizontal_spread
-from lunarnav_ml.geometry._checks import check_crater_label
+from lunarnav_ml.geometry._checks import crater_labels_3d
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
 from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater, rows_needed
@@ -99,7 +99,7 @@ def geometry_report(
     images = images[:max_images] if max_images is not None else images
     dets = _load_detections(detections, score_threshold)
     by_image = defaultdict(list)
-    for ann in _crater_labels(ann_path, coco):
+    for ann in crater_labels_3d(ann_path, coco):
         if _evaluated(ann, min_diameter_m):
             by_image[ann["image_id"]].append(ann)
     settings = _Settings(stereo, lifter or LifterConfig(), fitter or EllipseFitter(), ellipse_source,
@@ -135,20 +135,9 @@ def _annotations_path(dataset_dir: str | Path) -> Path:
 
 
 def _evaluated(ann: dict[str, Any], min_diameter_m: float) -> bool:
-    return (ann.get("category_id") == 1 and not ann.get("ignore", False)
-            and not ann.get("iscrowd", 0) and float(ann.get("diameter_m", 0.0)) >= min_diameter_m
-            and "center_cam_m" in ann)
-
-
-def _crater_labels(path: Path, coco: dict[str, Any]) -> list[dict[str, Any]]:
-    """The annotations, each crater label with a 3D centre checked (``check_crater_label``)."""
-    anns = coco.get("annotations", [])
-    if not isinstance(anns, list):
-        raise InputError(f"{path}: 'annotations' must be a list")
-    for k, ann in enumerate(anns):
-        if isinstance(ann, dict) and ann.get("category_id") == 1 and "center_cam_m" in ann:
-            check_crater_label(ann, f"{path}: annotations[{k}] (id {ann.get('id')})")
-    return [a for a in anns if isinstance(a, dict)]
+    """A checked 3D crater label (``crater_labels_3d``) that the report scores."""
+    return (not ann.get("ignore", False) and not ann.get("iscrowd", 0)
+            and ann["diameter_m"] >= min_diameter_m)
 
 
 def _load_detections(
@@ -156,11 +145,10 @@ def _load_detections(
 ) -> dict[int, list[dict[str, Any]]]:
     if detections is None:
         return {}
-    origin = "detections"
     if isinstance(detections, (str, Path)):
-        origin = f"{detections}: detections"
-        detections = read_json_file(detections, "detections", expect=list)
-    check_coco_results(detections, origin)
+        detections = read_coco_results(detections)
+    else:
+        check_coco_results(detections, "detections")
     out: dict[int, list[dict[str, Any]]] = defaultdict(list)
     for det in detections:
         if det.get("category_id") == 1 and float(det.get("score", 1.0)) >= threshold:

@@ -115,11 +115,9 @@ class Detector:
     def to_coco_results(preds: list[dict[str, np.ndarray]], image_ids: list[int]
                         ) -> list[dict[str, Any]]:
         """Predictions of several images as COCO results (bbox as x, y, w, h)."""
-        from lunarnav_ml.eval.predict import to_coco_results
+        from lunarnav_ml.eval.predict import coco_results
 
-        if len(preds) != len(image_ids):
-            raise InputError(f"{len(preds)} predictions for {len(image_ids)} image ids")
-        return [r for pred, image_id in zip(preds, image_ids) for r in to_coco_results(pred, image_id)]
+        return coco_results(preds, image_ids)
 
     def save(self, path: str | Path, half: bool = False) -> Path:
         """Write a slim ``.pt`` file (weights + config) that :func:`load_detector` reads;

@@ -10,7 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lunarnav_ml.errors import InputError
-from lunarnav_ml.eval.predict import Predictor, to_coco_results
+from lunarnav_ml.eval.predict import Predictor, coco_results
 from lunarnav_ml.utils import atomic
 from lunarnav_ml.utils.images import IMAGE_SUFFIXES, caption_tile, contact_sheet, read_rgb
 
@@ -75,7 +75,7 @@ def detect_files(detector: Predictor, files: list[Path], out_dir: Path, *, conf_
         rgb = [read_rgb(f) for f in chunk]
         preds = detector.predict(rgb, conf_thres=conf_thres, iou_thres=iou_thres)
         ids = list(range(start + 1, start + 1 + len(chunk)))
-        results += [r for image_id, pred in zip(ids, preds) for r in to_coco_results(pred, image_id)]
+        results += coco_results(preds, ids)
         for image_id, path, image, pred in zip(ids, chunk, rgb, preds):
             images_meta.append({"id": image_id, "file_name": str(path),
                                 "width": image.shape[1], "height": image.shape[0]})
