@@ -62,6 +62,30 @@ def rover_to_camera(
     return pts @ camera_to_rover_rotation(pitch_deg, roll_deg)
 
 
+CAMERA_KEYS = ("fx", "fy", "cx", "cy", "baseline_m", "height_m", "pitch_deg", "roll_deg")
+
+
+def camera_values(record: Any) -> dict[str, float]:
+    """The ``CAMERA_KEYS`` of a camera record (a dataset image's ``camera``) as floats,
+    ``roll_deg`` 0 when absent.
+
+    Raises:
+        InputError: not an object, a key missing, or a value that is not a finite number.
+    """
+    if not isinstance(record, Mapping):
+        raise InputError(f"camera: expected an object, got {type(record).__name__}")
+    out = {}
+    for key in CAMERA_KEYS:
+        value = record.get(key, 0.0 if key == "roll_deg" else None)
+        if value is None:
+            raise InputError(f"camera: missing key {key!r} (needs {', '.join(CAMERA_KEYS)})")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not np.isfinite(value):
+            raise InputError(f"camera: {key} must be a finite number, got {value!r}")
+        out[key] = float(value)
+    return out
+
+
 @dataclass(frozen=True)
 class StereoRig:
     """A rectified stereo pair on the rover: intrinsics of the left image plus its pose.
@@ -99,18 +123,15 @@ class StereoRig:
         """Build from a dataset image's ``camera`` record (ARCHITECTURE.md).
 
         Raises:
-            InputError: a key is missing or fx and fy differ (the lifter needs square pixels).
+            InputError: a key is missing or not a finite number (:func:`camera_values`), or
+                fx and fy differ (the lifter needs square pixels).
         """
-        keys = ("fx", "fy", "cx", "cy", "baseline_m", "height_m", "pitch_deg")
-        missing = [k for k in keys if k not in record]
-        if missing:
-            raise InputError(f"camera: missing key(s) {', '.join(missing)}")
-        fx, fy = float(record["fx"]), float(record["fy"])
+        cam = camera_values(record)
+        fx, fy = cam["fx"], cam["fy"]
         if abs(fx - fy) > 1e-6 * fx:
             raise InputError(f"camera: fx ({fx}) and fy ({fy}) differ; expected a rectified pair")
-        return cls(fx, float(record["baseline_m"]), float(record["cx"]), float(record["cy"]),
-                   float(record["height_m"]), float(record["pitch_deg"]),
-                   float(record.get("roll_deg", 0.0)))
+        return cls(fx, cam["baseline_m"], cam["cx"], cam["cy"], cam["height_m"],
+                   cam["pitch_deg"], cam["roll_deg"])
 
     @property
     def rotation(self) -> np.ndarray:

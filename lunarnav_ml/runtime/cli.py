@@ -13,9 +13,7 @@ import cv2
 import numpy as np
 
 from lunarnav_ml.errors import ConfigError, InputError
-
-DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
-CAMERA_KEYS = ("fx", "fy", "cx", "cy", "baseline_m", "height_m", "pitch_deg", "roll_deg")
+from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -49,27 +47,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def read_camera(path: Path) -> dict[str, float]:
-    """The camera record of a JSON file (the record itself or an object with ``camera``)."""
+    """The camera record of a JSON file (the record itself or an object with ``camera``),
+    checked (:func:`~lunarnav_ml.geometry.frames.camera_values`); errors name the file."""
+    from lunarnav_ml.geometry.frames import camera_values
     from lunarnav_ml.utils.jsonfile import read_json_file
 
     data = read_json_file(path, "camera", expect=dict)
-    record = data.get("camera", data)
-    if not isinstance(record, dict):
-        raise InputError(f"{path}: 'camera' must be an object")
-    out = {}
-    for key in CAMERA_KEYS:
-        value = record.get(key, 0.0 if key == "roll_deg" else None)
-        if value is None:
-            raise InputError(f"{path}: camera: missing key {key!r} (needs {', '.join(CAMERA_KEYS)})")
-        if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                or not np.isfinite(value):
-            raise InputError(f"{path}: camera: {key} must be a finite number, got {value!r}")
-        out[key] = float(value)
-    return out
+    try:
+        return camera_values(data.get("camera", data))
+    except InputError as err:
+        raise InputError(f"{path}: {err}") from None
 
 
 def run_localize(args: argparse.Namespace) -> int:
     """Localize the pair's craters; write ``craters3d.json`` and ``overlay.jpg``."""
+    from lunarnav_ml.eval.cli import load_predictor
     from lunarnav_ml.geometry.frames import StereoRig
     from lunarnav_ml.geometry.stereo import SGBMStereo
     from lunarnav_ml.runtime.craters3d import StereoCraterLocalizer
@@ -92,7 +84,8 @@ def run_localize(args: argparse.Namespace) -> int:
                          f"image is {left.shape[1]}x{left.shape[0]}")
     weights = args.weights or DEFAULT_WEIGHTS
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
-    localizer = StereoCraterLocalizer(_load_detector(weights, args.threads, args.img_size), rig,
+    # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
+    localizer = StereoCraterLocalizer(load_predictor(weights, args.threads, args.img_size), rig,
                                       conf_thres=args.conf, iou_thres=args.iou, stereo=stereo)
     craters = localizer(left, right)
     record = {"left": str(args.left), "right": str(args.right), "camera": camera,
@@ -112,17 +105,6 @@ def run_localize(args: argparse.Namespace) -> int:
     print(f"lunarnav localize: {len(craters)} crater boxes, {n_ok} in 3D ({took}) -> "
           f"{args.out / 'craters3d.json'}")
     return 0
-
-
-def _load_detector(weights: Path, threads: int, img_size: int | None) -> Any:
-    """``.onnx``: the torch-free :class:`OnnxDetector`; anything else a torch checkpoint."""
-    if weights.suffix == ".onnx":
-        from lunarnav_ml.runtime.detector import OnnxDetector
-
-        return OnnxDetector(weights, threads=threads, img_size=img_size)
-    from lunarnav_ml.training.api import load_detector
-
-    return load_detector(weights, img_size)
 
 
 def crater_record(crater: Any) -> dict[str, Any]:

@@ -59,5 +59,10 @@ def test_rig_from_camera_record():
         StereoRig.from_camera_record({"fx": 1.0})
     with pytest.raises(InputError, match="fx"):
         StereoRig.from_camera_record({**rec, "fy": 500.0})
+    with pytest.raises(InputError, match="camera: height_m must be a finite number, got 'tall'"):
+        StereoRig.from_camera_record({**rec, "height_m": "tall"})
+    with pytest.raises(InputError, match="camera: pitch_deg must be a finite number"):
+        StereoRig.from_camera_record({**rec, "pitch_deg": float("nan")})
+    assert StereoRig.from_camera_record({k: v for k, v in rec.items() if k != "roll_deg"}) == rig
     with pytest.raises(InputError, match="positive"):
         StereoRig(0.0, 0.3, 1, 1, 1.5, 0)
