@@ -1,6 +1,8 @@
 """``lunarnav localize``: a rendered stereo pair with known truth, through the CLI."""
 
 import json
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -59,6 +61,21 @@ def test_an_onnx_model_runs_through_the_onboard_runtime(pair, onnx_path, tmp_pat
     assert out["sgbm"] == {"mode": "3way", "num_disparities": 80}  # sized to 640 px
     assert all(c["ok"] == ("center_m" in c) for c in out["craters"])
     assert out["weights"] == str(onnx_path)
+
+
+def test_localize_with_an_onnx_model_never_imports_torch(pair, onnx_path, tmp_path):
+    """The whole ``lunarnav`` command, parser and all stage registrations included."""
+    root, _ = pair
+    probe = ("import sys; from lunarnav_ml.cli import main; code = main(sys.argv[1:]); "
+             "heavy = sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'torchvision', "
+             "'lightning', 'albumentations'}); print('HEAVY', heavy); sys.exit(code)")
+    out = subprocess.run(
+        [sys.executable, "-c", probe, "localize", str(root / "left.png"), str(root / "right.png"),
+         "--camera", str(root / "camera.json"), "--weights", str(onnx_path), "--conf", "0.01",
+         "--out", str(tmp_path)], capture_output=True, text=True, timeout=120, check=False)
+    assert out.returncode == 0, out.stderr
+    assert "HEAVY []" in out.stdout
+    assert (tmp_path / "craters3d.json").is_file()
 
 
 def test_read_camera(tmp_path):
