@@ -13,8 +13,9 @@ Default method, "tangent" (no terrain model):
    crest, outside the matcher's smearing of the depth edge; with ``crest_match`` and the image
    pair, from one-row windows matched on those rows instead). The near-side ray at bearing theta
    meets the circle at horizontal range rho k(theta) with k known from the angles, less the
-   edge's offset in front of a rounded crest (``rim_offset`` of the radius plus
-   ``rim_offset_m``), so
+   edge's offset in front of a rounded crest (``rim_offset`` of the radius, plus
+   ``rim_offset_m``, plus ``rim_offset_view`` of the radius times the sight line's depression
+   tangent), so
    d_i = f B |q_i,h| / (rho k_i): one parameter 1 / rho fitted robustly (Huber IRLS) in
    disparity space, where matcher noise is uniform. Many rim pixels feed one number, so
    per-pixel noise averages out.
@@ -140,28 +141,33 @@ class LifterConfig:
             diameters 1.79 -> 1.51 m (seed 2), 2.42 -> 1.64 m (seed 3, held out), 1.60 ->
             1.62 and 1.59 -> 1.68 m (seed 1), at the same Pd(3D) (BENCHMARKS.md, issue 5,
             "Both crest rules, the farther lift kept"). False: the largest-step rule alone.
-        rim_offset, rim_offset_m: "tangent": the near rim's visible edge lies
-            ``rim_offset * r + rim_offset_m`` in front of the rim crest (r the radius; a
-            rounded rim seen from a rover's height grazes the line of sight on its outer
-            flank). A calibration of the whole chain, SGBM and crest search included, so it
-            also takes up the matcher's range bias at a crest (small craters' crests read
-            low, hence the negative metric term). 0.0678 and -0.1684 m (session 33): fitted
-            by ``benchmarks/calibrate_rim_offset.py`` (fitted ellipse, SGBM, crest match,
-            every default gate and try) on the lifts from fitted ellipses of two development
-            terrains of the paper-stereo grid (seed 1 shards 0-3, seed 2 shards 0-3; D 5-20
-            m, 5-20 m), checked on seed 1 shards 4-6; not fitted on any evaluation set.
-            Before, one pair for every lift: 0.1055 and -0.2217 m (session 31, seed 1 shards
-            0-4, before the later gates and tries); without the crest match (no image pair
-            given) that fit gave 0.125 and -0.255 m. Recalibrate for another matcher, rig or
-            terrain. The geometric part alone (rendered disparity) was 0.06 r.
-        box_rim_offset, box_rim_offset_m: the same for lifts from a box's inscribed ellipse
+        rim_offset, rim_offset_m, rim_offset_view: "tangent": the near rim's visible edge
+            lies ``rim_offset * r + rim_offset_m + rim_offset_view * r * H / R`` in front of
+            the rim crest (r the radius, H the camera's height, R the edge's horizontal range,
+            so H / R is the tangent of the sight line's depression; a rounded rim seen from a
+            rover's height grazes the line of sight on its outer flank, the more so the
+            flatter the view). A calibration of the whole chain, SGBM and crest search
+            included, so it also takes up the matcher's range bias at a crest (small craters'
+            crests read low, hence the negative metric term). 0.0726, -0.1941 m and -0.1649
+            (session 35): fitted by ``benchmarks/calibrate_rim_offset.py`` (fitted ellipse,
+            SGBM, crest match, every default gate and try) on the lifts from fitted ellipses
+            of two development terrains of the paper-stereo grid (seed 1 shards 0-3, seed 2
+            shards 0-3; D 5-20 m, 5-20 m), checked on seed 1 shards 4-6 and seed 3; not fitted
+            on any evaluation set. Without the view term (0.0678 r - 0.1684 m, session 33)
+            large craters near the rover read 0.5-1.2 m too far (D = 15-20 m at 5-7 m: the
+            offset needed there is 0.4-0.5 m less than at 15-20 m, and the centre moves by
+            the offset over 1 - sin(alpha)). Before that, one pair for every lift: 0.1055 and
+            -0.2217 m (session 31). Recalibrate for another matcher, rig or terrain. The
+            geometric part alone (rendered disparity) was 0.06 r.
+        box_rim_offset, box_rim_offset_m, box_rim_offset_view: the same for lifts from a
+            box's inscribed ellipse
             (``lift_crater(..., from_box=True)``: the fitter's "box_fallback"). A box also
             holds the rim's outer flank and raised parts, so its ellipse's near arc lies below
             the visible crest, the crest search misses it more often and the lift reads
             nearer: with one pair for both, the box lifts came out 0.20-0.28 m too near and
-            the fitted ones 0.15-0.21 m too far on all three development sets. 0.0887 and
-            -0.0331 m, from the same calibration (BENCHMARKS.md, issue 5, "Edge offsets for
-            box ellipses").
+            the fitted ones 0.15-0.21 m too far on all three development sets. 0.0973,
+            -0.0467 m and -0.1880, from the same calibration (BENCHMARKS.md, issue 5, "Edge
+            offsets for box ellipses" and "The view in the edge offset").
         corr_factor: variance inflation for neighbouring rim samples sharing matcher windows.
         ground_gap: rows skipped below the ellipse before the ground patch, times its height.
         ground_rows: the ground patch ends this many ellipse heights (+ 30 px) below it.
@@ -193,11 +199,13 @@ class LifterConfig:
         rim_height_sigma_m: 1-sigma floor on the rim height (model error), m.
         rim_model_sigma: "tangent": 1-sigma of where the visible near edge lies along the line
             of sight, beyond the calibrated edge offset (rim shape, relief, the crest search),
-            as a fraction of the radius; added to the range variance of the covariance. 0.068:
-            on development shards 0-3 (SGBM, fitted ellipse, every default) the value that puts
-            the median along-range error at 0.674 sigma, the Gaussian's (before: 1.22 sigma,
-            the covariance from the rim samples' spread alone was 2x too confident); 0.70 on
-            held-out shards 4-5, 0.56-0.78 per range band 5-10 / 10-15 / 15-20 m.
+            as a fraction of the radius; added to the range variance of the covariance. 0.050
+            (session 35, with the view term in the edge offset): on the two calibration
+            terrains (seed 1 shards 0-3, seed 2 shards 0-3; SGBM, fitted ellipse, every
+            default) the value that puts the median horizontal centre error at 0.674 sigma,
+            the Gaussian's (0.676; 0.671 and 0.683 on the held-out seed 1 shards 4-6 and
+            seed 3). First calibrated at 0.068 (session 32; the covariance from the rim
+            samples' spread alone was 2x too confident).
         crest_match: "tangent", when :func:`lift_crater` is given the rectified pair: each
             near-rim sample's crest disparity is measured again from the images with windows
             one row high (``2 match_half_width + 1`` px wide) matched along the epipolar line
@@ -232,10 +240,12 @@ class LifterConfig:
     snap_px: int = 6
     retry_snap_px: int = 12
     reach_far_arc: bool = True
-    rim_offset: float = 0.0678
-    rim_offset_m: float = -0.1684
-    box_rim_offset: float = 0.0887
-    box_rim_offset_m: float = -0.0331
+    rim_offset: float = 0.0726
+    rim_offset_m: float = -0.1941
+    box_rim_offset: float = 0.0973
+    box_rim_offset_m: float = -0.0467
+    rim_offset_view: float = -0.1649
+    box_rim_offset_view: float = -0.1880
     corr_factor: float = 2.0
     ground_gap: float = 0.5
     ground_rows: float = 4.0
@@ -250,7 +260,7 @@ class LifterConfig:
     max_radial_rms: float = 0.1
     ellipse_sigma_px: float = 0.5
     rim_height_sigma_m: float = 0.02
-    rim_model_sigma: float = 0.068
+    rim_model_sigma: float = 0.050
     crest_match: bool = True
     match_half_width: int = 7
     match_half_height: int = 0
@@ -304,7 +314,8 @@ def lift_crater(
     """
     cfg = config or LifterConfig()
     if from_box:
-        cfg = replace(cfg, rim_offset=cfg.box_rim_offset, rim_offset_m=cfg.box_rim_offset_m)
+        cfg = replace(cfg, rim_offset=cfg.box_rim_offset, rim_offset_m=cfg.box_rim_offset_m,
+                      rim_offset_view=cfg.box_rim_offset_view)
     disp = _check_disparity(disparity)
     if pair is not None:
         pair = _check_pair(pair, disp.shape)
@@ -726,10 +737,12 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
     k = np.cos(delta) - np.sqrt(np.clip(np.sin(alpha) ** 2 - np.sin(delta) ** 2, 0.0, None))
     k = k - cfg.rim_offset * np.sin(alpha)  # the visible edge lies in front of the crest
     fb_q = rig.focal_px * rig.baseline_m * np.linalg.norm(hor_crest, axis=1)
-    # d_i = f B |q_i,h| / (rho k_i - offset_m): linear in 1 / rho once the metric offset is
-    # folded into k_i (offset_m / rho), which takes a few passes as rho settles
+    # d_i = f B |q_i,h| / (rho k_i - offset_m - view_i): linear in 1 / rho once the metric
+    # terms are folded into k_i (divided by rho), which takes a few passes as rho settles;
+    # view_i = rim_offset_view * r * H / R_i, R_i = rho k_i the edge's horizontal range
+    view = cfg.rim_offset_view * np.sin(alpha) * rig.height_m
     k_i = k
-    for _ in range(3 if cfg.rim_offset_m else 1):
+    for _ in range(4 if cfg.rim_offset_m or view else 1):
         if np.any(k_i <= 0):
             return LiftResult(False, "degenerate_circle")
         coef = fb_q / k_i
@@ -737,7 +750,7 @@ def _lift_tangent(ell: Ellipse, disp: np.ndarray, rig: StereoRig, cfg: LifterCon
         if inv is None or inv[0] <= 0 or n_used < cfg.min_rim:
             return LiftResult(False, "insufficient_rim_disparity", n_rim=int(ok.sum()))
         rho = 1.0 / inv[0]
-        k_i = k - cfg.rim_offset_m / rho
+        k_i = k - cfg.rim_offset_m / rho - view / (rho * k_i)
     resid = d[ok] - coef * inv[0]
     rstd = 1.4826 * float(np.median(np.abs(resid)))
     cam = q_crest * (rig.focal_px * rig.baseline_m / d[ok])[:, None]

@@ -183,7 +183,7 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
     rows = []
     for ann in anns:
         row = _eval_crater(left, right, disp, rig, ann, _box_for(ann, dets), cfg)
-        row.update(image_id=im["id"], stereo_s=stereo_s,
+        row.update(image_id=im["id"], stereo_s=stereo_s, camera_height_m=rig.height_m,
                    sun_zenith_deg=im.get("sun_zenith_deg"), sun_azimuth_deg=im.get("sun_azimuth_deg"))
         rows.append(row)
     return rows

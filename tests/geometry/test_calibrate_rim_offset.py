@@ -13,48 +13,68 @@ cal = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(cal)
 
 
-def _rows(offset_m: float, offset_frac: float, seed: int = 0) -> list[dict]:
+def _rows(offset_m: float, offset_frac: float, view: float = 0.0, seed: int = 0,
+          per_diameter: int = 60) -> list[dict]:
     """Lifts with no offset whose along-range error is what an edge ``offset_frac * r +
-    offset_m`` in front of the crest causes (plus a little noise and one failed lift)."""
+    offset_m + view * r * H / R`` in front of the crest causes (H = 1.5 m, R the near rim's
+    range; plus a little noise and one failed lift)."""
     rng = np.random.default_rng(seed)
     rows = [{"ok": False, "diameter_m": 5.0}]
     for d in (5.0, 10.0, 15.0, 20.0):
-        for _ in range(9):
-            r, rho, bearing = d / 2, rng.uniform(12, 25), rng.uniform(-0.6, 0.6)
+        for _ in range(per_diameter):
+            r, near, bearing = d / 2, rng.uniform(5, 20), rng.uniform(-0.6, 0.6)
+            rho = near + r
             k0 = 1 - r / rho
-            err = -(offset_m + offset_frac * r) / k0 + rng.normal(0, 0.02)
+            err = -(offset_m + offset_frac * r + view * r * 1.5 / near) / k0 + rng.normal(0, 0.02)
             u = np.array([np.cos(bearing), np.sin(bearing)])
             lateral = np.array([-u[1], u[0]]) * rng.normal(0, 0.1)
-            rows.append({"ok": True, "diameter_m": d, "near_rim_range_m": rho - r,
+            rows.append({"ok": True, "diameter_m": d, "near_rim_range_m": near,
                          "truth_center_m": [*(rho * u), 0.1],
                          "center_err_xy_m": (err * u + lateral).tolist()})
     return rows
 
 
 def test_recovers_a_known_offset():
-    radius, near, need = cal.needed_offsets(_rows(-0.25, 0.12))
-    assert len(need) == 36 and np.all(near > 0)
-    icpt, slope, per_r = cal.fit_offset(radius, need)
+    radius, near, need, height = cal.needed_offsets(_rows(-0.25, 0.12, -0.2))
+    assert len(need) == 240 and np.all(near > 0) and np.all(height == 1.5)
+    icpt, slope, view, cells = cal.fit_offset(radius, near, need, height)
     assert icpt == pytest.approx(-0.25, abs=0.03)
     assert slope == pytest.approx(0.12, abs=0.005)
-    assert sorted(per_r) == [2.5, 5.0, 7.5, 10.0] and per_r[2.5][0] == 9
+    assert view == pytest.approx(-0.2, abs=0.02)
+    assert {r for r, _ in cells} == {2.5, 5.0, 7.5, 10.0}
+    assert all(n >= 5 for n, _, _ in cells.values()) and len(cells) >= 24
+
+
+def test_the_view_term_is_zero_when_the_offset_does_not_depend_on_range():
+    radius, near, need, height = cal.needed_offsets(_rows(-0.1, 0.07))
+    icpt, slope, view, _ = cal.fit_offset(radius, near, need, height)
+    assert (icpt, slope) == (pytest.approx(-0.1, abs=0.03), pytest.approx(0.07, abs=0.005))
+    assert view == pytest.approx(0.0, abs=0.02)
 
 
 def test_one_diameter_is_not_enough():
     rows = [r for r in _rows(0.0, 0.06) if r["diameter_m"] == 5.0]
     with pytest.raises(LunarNavError, match="two diameters"):
-        cal.fit_offset(*cal.needed_offsets(rows)[::2])
+        cal.fit_offset(*cal.needed_offsets(rows))
+
+
+def test_one_range_band_is_not_enough():
+    rows = [r for r in _rows(0.0, 0.06) if not r["ok"] or 9 <= r["near_rim_range_m"] < 11]
+    with pytest.raises(LunarNavError, match="two near-rim range bands"):
+        cal.fit_offset(*cal.needed_offsets(rows))
 
 
 def test_fitted_and_box_ellipses_get_their_own_offsets(tmp_path, capsys):
-    rows = _rows(-0.2, 0.07) + [{**r, "from_box": True} for r in _rows(0.0, 0.09, seed=1)]
+    rows = _rows(-0.2, 0.07, -0.15) + [{**r, "from_box": True} for r in _rows(0.0, 0.09, seed=1)]
     (tmp_path / "set0").mkdir()
     (tmp_path / "set0" / "geometry_craters.json").write_text(json.dumps(rows))
     assert cal.main(["unused.json", "--out", str(tmp_path), "--rows-only"]) == 0
     got = json.loads((tmp_path / "rim_offset.json").read_text())
     assert got["fitted_ellipses"]["rim_offset_m"] == pytest.approx(-0.2, abs=0.03)
     assert got["fitted_ellipses"]["rim_offset"] == pytest.approx(0.07, abs=0.005)
+    assert got["fitted_ellipses"]["rim_offset_view"] == pytest.approx(-0.15, abs=0.02)
+    assert got["box_ellipses"]["box_rim_offset_view"] == pytest.approx(0.0, abs=0.02)
     assert got["box_ellipses"]["box_rim_offset_m"] == pytest.approx(0.0, abs=0.03)
     assert got["box_ellipses"]["box_rim_offset"] == pytest.approx(0.09, abs=0.005)
-    assert "box_rim_offset=0.0897" in capsys.readouterr().out
+    assert f"box_rim_offset={got['box_ellipses']['box_rim_offset']:.4f}" in capsys.readouterr().out
     assert (tmp_path / "box_rim_offset.png").is_file() and (tmp_path / "rim_offset.png").is_file()

@@ -17,7 +17,7 @@ from lunarnav_ml.geometry.stereo import SGBMStereo
 from .test_stereo import _texture, _warp
 
 # the helper's rims are sharp crests: the occluding edge is the crest itself
-SHARP = {"rim_offset": 0.0, "rim_offset_m": 0.0}
+SHARP = {"rim_offset": 0.0, "rim_offset_m": 0.0, "rim_offset_view": 0.0}
 
 
 def _true_disparity(sc) -> np.ndarray:
@@ -163,7 +163,7 @@ def test_rim_offset_moves_the_center_away_by_about_the_offset(crater_scene):
     sc = crater_scene
     disp = _true_disparity(sc)
     sharp = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**SHARP))
-    rounded = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.06, rim_offset_m=0.0))
+    rounded = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**{**SHARP, "rim_offset": 0.06}))
     assert sharp.ok and rounded.ok
     rho = np.hypot(*sharp.center_m[:2])
     expected = 0.06 * sc.crater.radius / (1 - sc.crater.radius / rho)
@@ -175,8 +175,8 @@ def test_metric_rim_offset_moves_the_center_away_by_about_the_offset(crater_scen
     sc = crater_scene
     disp = _true_disparity(sc)
     sharp = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**SHARP))
-    metric = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.0, rim_offset_m=0.3))
-    behind = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(rim_offset=0.0, rim_offset_m=-0.3))
+    metric = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**{**SHARP, "rim_offset_m": 0.3}))
+    behind = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**{**SHARP, "rim_offset_m": -0.3}))
     assert sharp.ok and metric.ok and behind.ok
     rho = np.hypot(*sharp.center_m[:2])
     expected = 0.3 / (1 - sc.crater.radius / rho)
@@ -185,6 +185,25 @@ def test_metric_rim_offset_moves_the_center_away_by_about_the_offset(crater_scen
     # the bearings do not change: the diameter scales with the range
     assert metric.diameter_m / sharp.diameter_m == pytest.approx(
         np.hypot(*metric.center_m[:2]) / rho, rel=1e-6)
+
+
+def test_view_term_of_the_rim_offset_follows_the_depression_of_the_sight_line(crater_scene):
+    """rim_offset_view c: an edge c r H / R in front of the crest (R the edge's range), the
+    same shift as the metric offset of that size."""
+    sc = crater_scene
+    disp = _true_disparity(sc)
+    sharp = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**SHARP))
+    view = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**{**SHARP, "rim_offset_view": -0.2}))
+    assert sharp.ok and view.ok
+    rho = np.hypot(*sharp.center_m[:2])
+    near = rho - sc.crater.radius
+    offset = -0.2 * sc.crater.radius * sc.rig.height_m / near
+    metric = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**{**SHARP, "rim_offset_m": offset}))
+    expected = offset / (1 - sc.crater.radius / rho)
+    assert np.hypot(*view.center_m[:2]) - rho == pytest.approx(expected, rel=0.3)
+    # the samples off the line of sight lie farther than the near rim: a smaller view term
+    assert abs(np.hypot(*view.center_m[:2]) - rho) < abs(np.hypot(*metric.center_m[:2]) - rho)
+    assert abs(np.hypot(*view.center_m[:2]) - rho) > 0.5 * abs(expected)
 
 
 def test_rim_disparity_crest_fraction_and_the_relative_gate(crater_scene):
@@ -302,8 +321,9 @@ def test_the_range_sigma_carries_the_rim_models_own_error(crater_scene):
     assert bare.ok and res.ok
     np.testing.assert_array_equal(res.center_m, bare.center_m)
     radius = sc.crater.diameter / 2
-    assert bare.horizontal_sigma_m < 0.3 * 0.068 * radius
-    assert res.horizontal_sigma_m == pytest.approx(0.068 * radius, rel=0.1)
+    model = LifterConfig().rim_model_sigma
+    assert bare.horizontal_sigma_m < 0.3 * model * radius
+    assert res.horizontal_sigma_m == pytest.approx(model * radius, rel=0.1)
 
 
 def test_the_tries_widen_the_search_each_with_both_crest_rules():

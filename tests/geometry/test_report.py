@@ -139,7 +139,8 @@ def test_report_on_rendered_disparity(tmp_path, crater_scene):
     coco["images"][0]["disparity_file"] = "disp.npy"
     (root / "annotations.json").write_text(json.dumps(coco))
     m = geometry_report(root, tmp_path / "b", disparity="rendered", ellipse_source="label",
-                        lifter=LifterConfig(rim_offset=0.0, rim_offset_m=0.0), plots=False)
+                        lifter=LifterConfig(rim_offset=0.0, rim_offset_m=0.0,
+                                                rim_offset_view=0.0), plots=False)
     assert m["settings"]["disparity"] == "rendered" and m["overall"]["n_lifted"] == 1
     assert m["overall"]["center_median_m"] < 0.05
 
