@@ -145,6 +145,44 @@ def test_crest_row_snaps_to_the_occluding_edge():
     assert _crest_row(column, 53.0, snap_px=6, min_jump=0.08) == pytest.approx(50.5)
 
 
+def test_with_no_jump_an_invalid_run_above_marks_the_crest():
+    """Sky or an unreadable shadow (NaN) above row 50, the crest and flank below."""
+    rows = np.arange(100, dtype=float)
+    column = np.where(rows < 50, np.nan, 9.0 + 0.1 * (rows - 50))
+    assert _crest_row(column, 53.2, snap_px=6, min_jump=0.08) == 53.2
+    assert _crest_row(column, 53.2, 6, 0.08, invalid_edge=True) == pytest.approx(49.5)
+    assert _lowest_step(column, 53.0, top=40.0, snap_px=4, min_jump=0.08) == 53.0
+    assert _lowest_step(column, 53.0, 40.0, 4, 0.08, invalid_edge=True) == pytest.approx(49.5)
+    # a jump still wins; one invalid row is not a run; an invalid run out of reach is not seen
+    jump = np.where(rows < 48, np.nan, np.where(rows < 50, 5.0, 9.0 + 0.1 * (rows - 50)))
+    assert _crest_row(jump, 51.0, 6, 0.08, invalid_edge=True) == pytest.approx(49.5)
+    one = column.copy()
+    one[:49] = 9.0
+    assert _crest_row(one, 53.2, 6, 0.08, invalid_edge=True) == 53.2
+    assert _crest_row(column, 60.0, 6, 0.08, invalid_edge=True) == 60.0
+
+
+def test_a_crest_under_an_unreadable_far_wall_is_found(crater_scene):
+    """The far wall's disparity removed above the crest (as in a deep shadow): the lift still
+    reads the crest, and without the rule most samples keep their ellipse rows."""
+    sc = crater_scene
+    disp = _true_disparity(sc)
+    exact = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**SHARP))
+    _, y, _, h = sc.ellipse.bbox()
+    shadow = disp.copy()
+    near = [(u, v) for u, v in sc.ellipse.points(72) if v > y + 0.6 * h]
+    for u, v in near:  # every row of the crater above the crest, in each sample's column
+        edge = _crest_row(disp[:, round(u)], v, 6, 0.08)
+        assert edge != v  # a crest edge was there to hide
+        shadow[int(y) - 2:int(np.ceil(edge)), round(u)] = np.nan
+    seen = lift_crater(sc.ellipse, shadow, sc.rig, LifterConfig(**SHARP))
+    blind = lift_crater(sc.ellipse, shadow, sc.rig, LifterConfig(**SHARP, crest_at_invalid=False))
+    assert exact.ok and seen.ok and len(near) > 10
+    assert seen.crest_fraction > 0.8 and blind.crest_fraction < 0.5
+    truth = np.hypot(*exact.center_m[:2])
+    assert abs(np.hypot(*seen.center_m[:2]) - truth) < 0.05
+
+
 def test_snapped_rim_disparities_read_the_crest_not_the_flank():
     h = 120
     rows = np.arange(h, dtype=float)[:, None]
