@@ -7,7 +7,7 @@ import pytest
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.geometry.frames import rover_to_camera
 from lunarnav_ml.geometry.lifter import LifterConfig
-from lunarnav_ml.geometry.report import geometry_report, summarize
+from lunarnav_ml.geometry.report import geometry_report, markdown_table, summarize
 
 
 def _write_dataset(root, sc) -> None:
@@ -123,6 +123,19 @@ def test_summarize_three_sigma_known_answer():
     assert near["center_3sigma_paper_m"] == pytest.approx(
         3 * np.sqrt((0.16 + 0.09 + 0.49) / 3))
     assert near["pd_3d"] == pytest.approx(2 / 3)  # 1.4 m > max(1 m, 0.25 D = 1.25 m): a miss
+
+
+def test_the_paper_stereo_convention_keeps_the_ranges_with_significant_detection():
+    def row(rng, e):
+        return {"diameter_m": 5.0, "near_rim_range_m": rng, "ok": True, "reason": "ok",
+                "center_err_m": e, "center_err_xy_m": [e, 0.0], "diameter_err_m": 0.0}
+    rows = [row(16.0, e) for e in (0.3, 0.4, 1.4)] + [row(12.2, 3.0), row(11.8, 2.0)]
+    m = summarize(rows)["per_diameter"]["5.0"]
+    sig, allr = m["significant_ranges"], m["all_ranges"]
+    assert sig["n"] == 3 and allr["n"] == 5  # the 12 m bin (Pd 0) is left out
+    assert sig["center_3sigma_paper_m"] == pytest.approx(3 * np.sqrt((0.16 + 0.09 + 0.49) / 3))
+    assert "3σp center, significant ranges" in markdown_table(
+        {**summarize(rows), "settings": {"ellipse_source": "fit", "n_images": 1}})
 
 
 def test_report_on_rendered_disparity(tmp_path, crater_scene):
