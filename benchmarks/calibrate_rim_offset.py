@@ -62,6 +62,27 @@ def needed_offsets(rows: list[dict[str, Any]], camera_height_m: float = 1.5
     return radius, near, -along * k0, height
 
 
+def _checked_rows(path: Path) -> list[dict[str, Any]]:
+    """A geometry report's rows, each lifted one with the fields the calibration reads."""
+    rows = read_json_file(path, "geometry report rows", expect=list)
+    for i, r in enumerate(rows):
+        if not isinstance(r, dict) or "ok" not in r:
+            raise LunarNavError(f"{path}: row {i}: expected an object with 'ok'")
+        if not r["ok"]:
+            continue
+        for key, n in (("truth_center_m", 2), ("center_err_xy_m", 2), ("diameter_m", 1),
+                       ("near_rim_range_m", 1)):
+            v = np.atleast_1d(np.asarray(r.get(key), dtype=object))
+            try:
+                ok = len(v) >= n and np.all(np.isfinite(v[:n].astype(np.float64)))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise LunarNavError(f"{path}: row {i}: {key}: expected {n} finite number(s), "
+                                    f"got {r.get(key)!r}")
+    return rows
+
+
 def fit_offset(radius: np.ndarray, near: np.ndarray, need: np.ndarray, height_m: np.ndarray,
                min_cell: int = 5) -> tuple[float, float, float, dict[tuple[float, float], Any]]:
     """(rim_offset_m, rim_offset, rim_offset_view, cells) from a weighted least-squares fit of
@@ -109,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
             if not args.rows_only:
                 geometry_report(gt, part, ellipse_source=args.ellipse_source, lifter=zero,
                                 plots=False)
-            rows += read_json_file(part / "geometry_craters.json", "geometry report rows")
+            rows += _checked_rows(part / "geometry_craters.json")
         # fitted ellipses and box ellipses (the fitter's fallback) get their own offsets
         for prefix, from_box in (("", False), ("box_", True)):
             group = [r for r in rows if bool(r.get("from_box")) == from_box]

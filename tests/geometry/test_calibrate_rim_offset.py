@@ -78,3 +78,19 @@ def test_fitted_and_box_ellipses_get_their_own_offsets(tmp_path, capsys):
     assert got["box_ellipses"]["box_rim_offset"] == pytest.approx(0.09, abs=0.005)
     assert f"box_rim_offset={got['box_ellipses']['box_rim_offset']:.4f}" in capsys.readouterr().out
     assert (tmp_path / "box_rim_offset.png").is_file() and (tmp_path / "rim_offset.png").is_file()
+
+
+@pytest.mark.parametrize("bad, field", [({"near_rim_range_m": None}, "near_rim_range_m"),
+                                        ({"center_err_xy_m": [0.1]}, "center_err_xy_m"),
+                                        ({"truth_center_m": ["x", 1.0]}, "truth_center_m")])
+def test_malformed_rows_give_one_line_naming_the_field(tmp_path, capsys, bad, field):
+    rows = _rows(0.0, 0.06)
+    rows[3] = {**rows[3], **bad}
+    (tmp_path / "set0").mkdir()
+    (tmp_path / "set0" / "geometry_craters.json").write_text(json.dumps(rows))
+    assert cal.main(["unused.json", "--out", str(tmp_path), "--rows-only"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"row 3: {field}" in err
+    (tmp_path / "set0" / "geometry_craters.json").write_text("{not json")
+    assert cal.main(["unused.json", "--out", str(tmp_path), "--rows-only"]) == 2
+    assert "not valid JSON" in capsys.readouterr().err
