@@ -152,7 +152,7 @@ class LifterConfig:
             (session 35): fitted by ``benchmarks/calibrate_rim_offset.py`` (fitted ellipse,
             SGBM, crest match, every default gate and try) on the lifts from fitted ellipses
             of two development terrains of the paper-stereo grid (seed 1 shards 0-3, seed 2
-            shards 0-3; D 5-20 m, 5-20 m), checked on seed 1 shards 4-6 and seed 3; not fitted
+            shards 0-3; D 5-20 m, 5-20 m), checked on seed 1 shards 4-6, seed 3 and seed 4; not fitted
             on any evaluation set. Without the view term (0.0678 r - 0.1684 m, session 33)
             large craters near the rover read 0.5-1.2 m too far (D = 15-20 m at 5-7 m: the
             offset needed there is 0.4-0.5 m less than at 15-20 m, and the centre moves by
