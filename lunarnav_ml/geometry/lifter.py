@@ -372,17 +372,21 @@ def lift_crater(
 
 def rows_needed(boxes_xywh: np.ndarray, height: int, cfg: LifterConfig | None = None
                 ) -> tuple[int, int]:
-    """Image rows [first, last) that lifting these crater boxes reads: each box, and the ground
-    patch below it ("plane"'s ``ground_gap`` and ``ground_rows``), with a margin; SGBM can be
-    run on that band alone (``SGBMStereo(..., rows=...)``).
+    """Image rows [first, last) that lifting these crater boxes reads: each box, with room
+    above it for an ellipse fitted in the box's crop (``EllipseFitter``'s margin, a quarter of
+    the box height: rows the matcher left out would read as invalid, and an invalid run above
+    a crest search marks the crest, ``crest_at_invalid``), and the ground patch below it
+    ("plane"'s ``ground_gap`` and ``ground_rows``), with a margin; SGBM can be run on that band
+    alone (``SGBMStereo(..., rows=...)``).
 
     Shape:
         boxes_xywh: (K, 4) px, K >= 1.
     """
     cfg = cfg or LifterConfig()
     b = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
+    tops = b[:, 1] - np.maximum(10.0, 0.25 * b[:, 3] + 6.0)
     bottoms = b[:, 1] + b[:, 3] * (1 + cfg.ground_gap + cfg.ground_rows) + 40
-    return max(int(b[:, 1].min()) - 10, 0), min(int(bottoms.max()) + 10, height)
+    return max(int(tops.min()), 0), min(int(bottoms.max()) + 10, height)
 
 
 def _tries(cfg: LifterConfig) -> list[list[tuple[LifterConfig, bool]]]:

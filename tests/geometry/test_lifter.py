@@ -11,6 +11,7 @@ from lunarnav_ml.geometry.lifter import (
     _rim_disparities,
     _tries,
     lift_crater,
+    rows_needed,
 )
 from lunarnav_ml.geometry.stereo import SGBMStereo
 
@@ -413,3 +414,10 @@ def test_of_two_passing_crest_rules_the_farther_lift_is_kept(crater_scene_side_s
     res = lift_crater(low, disp, sc.rig, LifterConfig(**SHARP))
     assert res.ok and res.crest_step == "lowest" and res.crest_search_px == 6
     np.testing.assert_allclose(res.center_m[:2], sc.center_rover[:2], atol=0.1)
+
+
+def test_rows_needed_leave_room_above_a_box_for_a_fitted_ellipse():
+    first, last = rows_needed(np.array([[100.0, 200.0, 300.0, 80.0]]), 1024)
+    assert first <= 200 - 0.25 * 80 - 4 and last == 200 + 80 * 5.5 + 50
+    assert rows_needed(np.array([[0.0, 300.0, 50.0, 8.0]]), 1024)[0] == 290  # small: 10 rows
+    assert rows_needed(np.array([[0.0, 5.0, 50.0, 8.0]]), 1024)[0] == 0
