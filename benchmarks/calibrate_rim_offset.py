@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from lunarnav_ml.errors import LunarNavError
+from lunarnav_ml.geometry._checks import as_array
 from lunarnav_ml.geometry.lifter import LifterConfig
 from lunarnav_ml.geometry.report import geometry_report
 from lunarnav_ml.utils.atomic import write_figure, write_json
@@ -68,18 +69,10 @@ def _checked_rows(path: Path) -> list[dict[str, Any]]:
     for i, r in enumerate(rows):
         if not isinstance(r, dict) or "ok" not in r:
             raise LunarNavError(f"{path}: row {i}: expected an object with 'ok'")
-        if not r["ok"]:
-            continue
-        for key, n in (("truth_center_m", 2), ("center_err_xy_m", 2), ("diameter_m", 1),
-                       ("near_rim_range_m", 1)):
-            v = np.atleast_1d(np.asarray(r.get(key), dtype=object))
-            try:
-                ok = len(v) >= n and np.all(np.isfinite(v[:n].astype(np.float64)))
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise LunarNavError(f"{path}: row {i}: {key}: expected {n} finite number(s), "
-                                    f"got {r.get(key)!r}")
+        if r["ok"]:
+            for key, shape in (("truth_center_m", (3,)), ("center_err_xy_m", (2,)),
+                               ("diameter_m", ()), ("near_rim_range_m", ())):
+                as_array(f"{path}: row {i}: {key}", r.get(key), shape)
     return rows
 
 

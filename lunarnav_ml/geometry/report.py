@@ -263,12 +263,26 @@ def _three_sigma(values: list[float]) -> float | None:
     return float(3.0 * np.sqrt(np.mean(arr**2))) if arr.size else None
 
 
+def _pd_3d(rows: list[dict[str, Any]]) -> float | None:
+    """Fraction of the rows lifted with the centre within max(1 m, 0.25 D) of the truth."""
+    hit = [r for r in rows if r["ok"] and r["center_err_m"] <= max(1.0, 0.25 * r["diameter_m"])]
+    return len(hit) / len(rows) if rows else None
+
+
+def _by_range(rows: list[dict[str, Any]]) -> dict[int, list[dict[str, Any]]]:
+    """Rows in 1 m near-rim range bins (rounded), by bin; rows without a range left out."""
+    by_r: dict[int, list] = defaultdict(list)
+    for r in rows:
+        if np.isfinite(r["near_rim_range_m"]):
+            by_r[round(r["near_rim_range_m"])].append(r)
+    return dict(sorted(by_r.items()))
+
+
 def _group_stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
     ok = [r for r in rows if r["ok"]]
-    hit = [r for r in ok if r["center_err_m"] <= max(1.0, 0.25 * r["diameter_m"])]
     return {
         "n": len(rows), "n_lifted": len(ok),
-        "pd_3d": len(hit) / len(rows) if rows else None,
+        "pd_3d": _pd_3d(rows),
         "center_3sigma_m": _three_sigma([r["center_err_m"] for r in ok]),
         "center_3sigma_paper_m": horizontal_spread(
             np.array([r["center_err_xy_m"] for r in ok]))["three_sigma_m"],
@@ -282,11 +296,7 @@ def _significant(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One diameter's rows in the 1 m near-rim range bins whose Pd(3D) is at least
     ``SIGNIFICANT_PD``: the ranges the paper's stereo table is computed over ("all ranges with
     significant detection rates")."""
-    by_r: dict[int, list] = defaultdict(list)
-    for r in rows:
-        if np.isfinite(r["near_rim_range_m"]):
-            by_r[round(r["near_rim_range_m"])].append(r)
-    return [r for rs in by_r.values() if _group_stats(rs)["pd_3d"] >= SIGNIFICANT_PD for r in rs]
+    return [r for rs in _by_range(rows).values() if _pd_3d(rs) >= SIGNIFICANT_PD for r in rs]
 
 
 def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -302,10 +312,6 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
         near = [r for r in rs if lo <= r["near_rim_range_m"] <= hi]
         per_d[str(d)] = {"range_15_20": _group_stats(near), "all_ranges": _group_stats(rs),
                          "significant_ranges": _group_stats(_significant(rs))}
-    by_r: dict[int, list] = defaultdict(list)
-    for r in rows:
-        if np.isfinite(r["near_rim_range_m"]):
-            by_r[round(r["near_rim_range_m"])].append(r)
     ok = [r for r in rows if r["ok"]]
     reasons: dict[str, int] = defaultdict(int)
     for r in rows:
@@ -313,7 +319,7 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     nees = [r["center_err_m"] / r["sigma_h_m"] for r in ok if r.get("sigma_h_m", 0) > 0]
     return {
         "per_diameter": per_d,
-        "pd_3d_vs_range": {str(k): _group_stats(v)["pd_3d"] for k, v in sorted(by_r.items())},
+        "pd_3d_vs_range": {str(k): _pd_3d(v) for k, v in _by_range(rows).items()},
         "overall": _group_stats(rows),
         "reasons": dict(reasons),
         "time_per_crater_ms": {
