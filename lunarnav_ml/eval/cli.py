@@ -93,6 +93,7 @@ def run_geometry(args: argparse.Namespace) -> int:
 
     summary = geometry_report(Path(args.test_gt), args.out, detections=args.test_results,
                               ellipse_source=args.ellipse_source, disparity=args.disparity,
+                              box_jitter=args.box_jitter, seed=args.seed,
                               progress=not args.no_progress)
     print(json.dumps(summary.get("summary", summary), indent=1, default=str)[:2000])
     return 0
@@ -181,6 +182,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--ellipse-source", choices=("fit", "label", "box"), default="fit",
                    help="(geometry) the fitted ellipse, the labelled one (isolates stereo + "
                         "lifter) or the box's inscribed one")
+    p.add_argument("--box-jitter", type=float, default=0.0,
+                   help="(geometry) move each edge of the labelled boxes by N(0, this x the "
+                        "box's side) before the fit and lift: how the 3D figures depend on a "
+                        "detector's box error")
+    p.add_argument("--seed", type=int, default=0, help="(geometry) seed of --box-jitter")
     p.add_argument("--disparity", choices=("sgbm", "rendered"), default="sgbm",
                    help="(geometry) SGBM on the pair, or the dataset's rendered disparity "
                         "(isolates the lifter)")

@@ -57,6 +57,8 @@ def geometry_report(
     disparity: str = "sgbm",
     min_diameter_m: float = 4.5,
     max_images: int | None = None,
+    box_jitter: float = 0.0,
+    seed: int = 0,
     stereo: SGBMStereo | None = None,
     lifter: LifterConfig | None = None,
     fitter: EllipseFitter | None = None,
@@ -77,6 +79,10 @@ def geometry_report(
             ``disparity_file`` of each image: isolates the lifter from the matcher).
         min_diameter_m: smaller labelled craters are not evaluated.
         max_images: evaluate only the first N stereo images.
+        box_jitter: move each edge of every labelled box by N(0, box_jitter x the box's side)
+            before the fit and the lift: a detector's box error, to see how the 3D figures
+            depend on it (labelled boxes only; 0: the boxes as labelled).
+        seed: the jitter's seed (with each label's id: the same seed, the same boxes).
         stereo, lifter, fitter: settings (defaults: SGBM sized to the image, LifterConfig(),
             EllipseFitter()).
         plots: write the PNG plots.
@@ -86,8 +92,13 @@ def geometry_report(
         The metrics dict written to ``geometry_metrics.json``.
 
     Raises:
-        InputError: missing annotations or images, no stereo pairs, a bad ``ellipse_source``.
+        InputError: missing annotations or images, no stereo pairs, a bad ``ellipse_source``,
+            a ``box_jitter`` outside [0, 0.5) or given with detections.
     """
+    if not 0.0 <= box_jitter < 0.5:  # also False for NaN
+        raise InputError(f"box_jitter: expected a fraction in [0, 0.5), got {box_jitter!r}")
+    if box_jitter and detections is not None:
+        raise InputError("box_jitter: applies to the labelled boxes; not with detections")
     if ellipse_source not in ELLIPSE_SOURCES:
         raise InputError(f"ellipse_source: expected one of {ELLIPSE_SOURCES}, got {ellipse_source!r}")
     if disparity not in DISPARITY_SOURCES:
@@ -104,7 +115,7 @@ def geometry_report(
         if _evaluated(ann, min_diameter_m):
             by_image[ann["image_id"]].append(ann)
     settings = _Settings(stereo, lifter or LifterConfig(), fitter or EllipseFitter(), ellipse_source,
-                         disparity)
+                         disparity, box_jitter, seed)
     rows: list[dict[str, Any]] = []
     for im in tqdm(images, desc="geometry", unit="img", disable=not progress):
         if by_image.get(im["id"]):
@@ -115,16 +126,16 @@ def geometry_report(
                            "disparity": disparity,
                            "detections": None if detections is None else "coco_results",
                            "score_threshold": score_threshold, "min_diameter_m": min_diameter_m,
-                           "n_images": len(images)}
+                           "box_jitter": box_jitter, "seed": seed, "n_images": len(images)}
     _write_outputs(Path(out_dir), metrics, rows, plots)
     return metrics
 
 
 class _Settings:
     def __init__(self, stereo: SGBMStereo | None, lifter: LifterConfig, fitter: EllipseFitter,
-                 source: str, disparity: str) -> None:
+                 source: str, disparity: str, box_jitter: float = 0.0, seed: int = 0) -> None:
         self.stereo, self.lifter, self.fitter, self.source = stereo, lifter, fitter, source
-        self.disparity = disparity
+        self.disparity, self.box_jitter, self.seed = disparity, box_jitter, seed
 
 
 def _annotations_path(dataset_dir: str | Path) -> Path:
@@ -173,36 +184,53 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
         raise InputError(f"{root / im['file_name']} (image id {im['id']}): {err}") from None
     left = _read_gray(root, im["file_name"])
     t0 = time.perf_counter()
+    boxes = [_box_for(ann, dets, cfg) for ann in anns]
     right = None
     if cfg.disparity == "rendered":  # the right image is not needed
         disp = read_disparity(root, im)
     else:
         right = _read_gray(root, im["right_file"])
-        rows = rows_needed(np.array([a["bbox"] for a in anns]), left.shape[0], cfg.lifter)
+        # COCO boxes again (+0.5 px), as the matcher's band is set from them
+        used = ([b + np.array([0.5, 0.5, 0.0, 0.0]) for b in boxes if b is not None]
+                or [a["bbox"] for a in anns])
+        rows = rows_needed(np.array(used).reshape(-1, 4), left.shape[0], cfg.lifter)
         disp = (cfg.stereo or SGBMStereo.for_width(left.shape[1]))(left, right, rows).disparity
     stereo_s = time.perf_counter() - t0
     rows = []
-    for ann in anns:
-        row = _eval_crater(left, right, disp, rig, ann, _box_for(ann, dets), cfg)
+    for ann, box in zip(anns, boxes):
+        row = _eval_crater(left, right, disp, rig, ann, box, cfg)
         row.update(image_id=im["id"], stereo_s=stereo_s, camera_height_m=rig.height_m,
                    sun_zenith_deg=im.get("sun_zenith_deg"), sun_azimuth_deg=im.get("sun_azimuth_deg"))
         rows.append(row)
     return rows
 
 
-def _box_for(ann: dict[str, Any], dets: list[dict[str, Any]] | None) -> np.ndarray | None:
-    """The labelled box, or the best-scoring detection with IoU >= 0.5 (None: missed).
+def _box_for(ann: dict[str, Any], dets: list[dict[str, Any]] | None,
+             cfg: _Settings | None = None) -> np.ndarray | None:
+    """The labelled box (moved by ``cfg.box_jitter``), or the best-scoring detection with IoU
+    >= 0.5 (None: missed).
 
     COCO boxes put pixel i on [i, i + 1); the geometry works in pixel-center coordinates, so
     the box is shifted by -0.5 px.
     """
     box = np.asarray(ann["bbox"], dtype=np.float64)
+    if cfg is not None and cfg.box_jitter:
+        rng = np.random.default_rng([cfg.seed, int(ann.get("id", 0))])
+        box = jitter_box(box, cfg.box_jitter, rng)
     if dets is not None:
         hits = [d for d in dets if _iou(np.asarray(d["bbox"], float), box) >= 0.5]
         if not hits:
             return None
         box = np.asarray(max(hits, key=lambda d: d.get("score", 1.0))["bbox"], dtype=np.float64)
     return box - np.array([0.5, 0.5, 0.0, 0.0])
+
+
+def jitter_box(box_xywh: np.ndarray, frac: float, rng: np.random.Generator) -> np.ndarray:
+    """The box with each edge moved by N(0, frac x its side), at least 2 px wide and high."""
+    x, y, w, h = box_xywh
+    e = rng.normal(0.0, frac, 4) * np.array([w, w, h, h])
+    left, right, top, bottom = x + e[0], x + w + e[1], y + e[2], y + h + e[3]
+    return np.array([left, top, max(right - left, 2.0), max(bottom - top, 2.0)])
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -341,11 +369,20 @@ def _fmt(x: float | None, nd: int = 2) -> str:
     return "—" if x is None else f"{x:.{nd}f}"
 
 
+def _jitter_text(settings: dict[str, Any]) -> str:
+    jitter = settings.get("box_jitter") or 0.0
+    if not jitter:
+        return ""
+    return (f"labelled boxes with each edge moved by N(0, {jitter:g} x its side), seed "
+            f"{settings.get('seed', 0)}; ")
+
+
 def markdown_table(metrics: dict[str, Any]) -> str:
     """The 3-sigma table beside the paper's stereo and lidar tables, plus timing and reasons."""
     lines = [
         "# Crater geometry: 3D center and diameter from one stereo pair", "",
-        (f"Ellipse source: `{metrics['settings']['ellipse_source']}`; images: "
+        (f"Ellipse source: `{metrics['settings']['ellipse_source']}`; "
+         f"{_jitter_text(metrics['settings'])}images: "
         f"{metrics['settings']['n_images']}; disparity: "
         f"{metrics['settings'].get('disparity', 'sgbm')}; 3σ = 3 × RMS error about the truth (bias "
         "included); σp: the paper's, the spread about the mean error vector. The paper's lidar "

@@ -7,7 +7,7 @@ import pytest
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.geometry.frames import rover_to_camera
 from lunarnav_ml.geometry.lifter import LifterConfig
-from lunarnav_ml.geometry.report import geometry_report, markdown_table, summarize
+from lunarnav_ml.geometry.report import geometry_report, jitter_box, markdown_table, summarize
 
 
 def _write_dataset(root, sc) -> None:
@@ -61,6 +61,35 @@ def test_report_with_detections(dataset, tmp_path):
     hit = [{"image_id": 1, "category_id": 1, "bbox": ann["bbox"], "score": 0.9}]
     m = geometry_report(dataset, tmp_path / "b", detections=hit, ellipse_source="label", plots=False)
     assert m["overall"]["n_lifted"] == 1
+
+
+def test_box_jitter_moves_each_edge_by_its_fraction_of_the_side():
+    box = np.array([100.0, 200.0, 80.0, 20.0])
+    rng = np.random.default_rng(0)
+    moved = np.array([jitter_box(box, 0.05, rng) for _ in range(4000)])
+    left, top = moved[:, 0] - box[0], moved[:, 1] - box[1]
+    right, bottom = moved[:, 0] + moved[:, 2] - 180.0, moved[:, 1] + moved[:, 3] - 220.0
+    for edge, side in ((left, 80), (right, 80), (top, 20), (bottom, 20)):
+        assert abs(edge.mean()) < 0.1 * side * 0.05 * 3
+        assert edge.std() == pytest.approx(0.05 * side, rel=0.05)
+    assert np.all(jitter_box(np.array([0.0, 0.0, 1.0, 1.0]), 0.4, rng)[2:] >= 2.0)
+
+
+def test_report_with_jittered_boxes(dataset, tmp_path):
+    a = geometry_report(dataset, tmp_path / "a", box_jitter=0.05, seed=3, plots=False)
+    b = geometry_report(dataset, tmp_path / "b", box_jitter=0.05, seed=3, plots=False)
+    c = geometry_report(dataset, tmp_path / "c", box_jitter=0.05, seed=4, plots=False)
+    rows = [json.loads((tmp_path / k / "geometry_craters.json").read_text())[0] for k in "abc"]
+    assert rows[0] == {**rows[1], "fit_s": rows[0]["fit_s"], "lift_s": rows[0]["lift_s"],
+                       "stereo_s": rows[0]["stereo_s"]}  # same seed, same result
+    assert rows[0]["ellipse"] != rows[2]["ellipse"]  # another seed, another box
+    assert a["settings"]["box_jitter"] == 0.05 and c["settings"]["seed"] == 4
+    assert b["overall"]["n"] == 1
+    assert "moved by N(0, 0.05" in (tmp_path / "a" / "geometry_report.md").read_text()
+    with pytest.raises(InputError, match="box_jitter"):
+        geometry_report(dataset, tmp_path / "d", box_jitter=float("nan"))
+    with pytest.raises(InputError, match="box_jitter"):
+        geometry_report(dataset, tmp_path / "d", box_jitter=0.1, detections=[])
 
 
 def test_report_bad_inputs(tmp_path, dataset):
@@ -163,9 +192,16 @@ def test_eval_cli_geometry_options(dataset, tmp_path, capsys):
 
     out = tmp_path / "cli"
     assert main(["eval", "--task", "geometry", "--gt", str(dataset), "--ellipse-source", "box",
-                 "--out", str(out)]) == 0
+                 "--box-jitter", "0.02", "--seed", "7", "--out", str(out)]) == 0
     m = json.loads((out / "geometry_metrics.json").read_text())
     assert m["settings"]["ellipse_source"] == "box" and m["settings"]["disparity"] == "sgbm"
+    assert m["settings"]["box_jitter"] == 0.02 and m["settings"]["seed"] == 7
+    # a jitter with detections: one line, exit 2
+    dets = tmp_path / "dets.json"
+    dets.write_text("[]")
+    assert main(["eval", "--task", "geometry", "--gt", str(dataset), "--test-results", str(dets),
+                 "--box-jitter", "0.02", "--out", str(tmp_path / "y")]) == 2
+    assert "box_jitter" in capsys.readouterr().err
     # no rendered disparity in this dataset: one line, exit 2
     assert main(["eval", "--task", "geometry", "--gt", str(dataset), "--disparity", "rendered",
                  "--out", str(tmp_path / "x")]) == 2
