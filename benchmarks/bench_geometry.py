@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--image-size", type=int, default=1024)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--render-only", action="store_true")
-    p.add_argument("--sources", nargs="+", default=["fit", "label"])
+    p.add_argument("--sources", nargs="+", default=["box", "fit", "label"])
     args = p.parse_args(argv)
     idx = select_items(args.diameters, args.ranges, args.per_diameter, args.offset)
     render(args.root, idx, args.image_size, args.seed)

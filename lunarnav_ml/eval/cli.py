@@ -179,9 +179,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="(detection, transfer) network input side, px; default the model's")
     add_tta_arguments(p)
     p.add_argument("--overlays", type=int, default=12, help="overlay images to write")
-    p.add_argument("--ellipse-source", choices=("fit", "label", "box"), default="fit",
-                   help="(geometry) the fitted ellipse, the labelled one (isolates stereo + "
-                        "lifter) or the box's inscribed one")
+    p.add_argument("--ellipse-source", choices=("box", "fit", "label"), default="box",
+                   help="(geometry) the ellipse each crater is lifted from: the box's inscribed "
+                        "one (as `lunarnav localize` lifts), the fitted one, or the labelled "
+                        "one (isolates stereo + lifter)")
     p.add_argument("--box-jitter", type=float, default=0.0,
                    help="(geometry) move each edge of the labelled boxes by N(0, this x the "
                         "box's side) before the fit and lift: how the 3D figures depend on a "

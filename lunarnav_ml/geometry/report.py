@@ -53,7 +53,7 @@ def geometry_report(
     *,
     detections: str | Path | list[dict[str, Any]] | None = None,
     score_threshold: float = 0.0,
-    ellipse_source: str = "fit",
+    ellipse_source: str = "box",
     disparity: str = "sgbm",
     min_diameter_m: float = 4.5,
     max_images: int | None = None,
@@ -73,8 +73,10 @@ def geometry_report(
             ``geometry_report.md`` and the PNG plots go.
         detections: COCO results (path or list); None evaluates on the labelled boxes.
         score_threshold: detections below this score are ignored.
-        ellipse_source: "fit" (the ellipse fitter in the box), "label" (the labelled ellipse:
-            isolates stereo + lift) or "box" (the ellipse inscribed in the box).
+        ellipse_source: the ellipse each crater is lifted from: "box" (the ellipse inscribed
+            in the box, as ``StereoCraterLocalizer`` lifts by default), "fit" (the ellipse
+            fitter in the box, with its box fallback) or "label" (the labelled ellipse:
+            isolates stereo + lift).
         disparity: "sgbm" (the matcher on the pair) or "rendered" (the dataset's own
             ``disparity_file`` of each image: isolates the lifter from the matcher).
         min_diameter_m: smaller labelled craters are not evaluated.

@@ -42,6 +42,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="SGBM aggregation: hh (8 paths, the evaluated default), hh4 (about half "
                         "the time), 3way (about a fifth); the faster modes lift less exactly "
                         "(BENCHMARKS.md, issue 8, 'lunarnav localize')")
+    p.add_argument("--lift-from", default="box", choices=("box", "fit"),
+                   help="lift each crater from the box's inscribed ellipse (default) or from "
+                        "the fitted rim ellipse; the fitted one is reported either way")
     p.add_argument("--out", type=Path, default=Path("outputs/localize"), help="output folder")
     p.set_defaults(func=run_localize)
 
@@ -86,11 +89,12 @@ def run_localize(args: argparse.Namespace) -> int:
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
     localizer = StereoCraterLocalizer(load_predictor(weights, args.threads, args.img_size), rig,
-                                      conf_thres=args.conf, iou_thres=args.iou, stereo=stereo)
+                                      conf_thres=args.conf, iou_thres=args.iou, stereo=stereo,
+                                      lift_from=args.lift_from)
     craters = localizer(left, right)
     record = {"left": str(args.left), "right": str(args.right), "camera": camera,
               "weights": str(weights), "conf": args.conf, "iou": args.iou,
-              "sgbm": {"mode": stereo.mode, "num_disparities": stereo.num_disparities},
+              "lift_from": args.lift_from, "sgbm": {"mode": stereo.mode, "num_disparities": stereo.num_disparities},
               "frame": "rover: x forward, y left, z up, m",
               "timing_ms": {k: round(v, 1) for k, v in localizer.timing_ms.items()},
               "craters": [crater_record(c) for c in craters]}

@@ -2,7 +2,8 @@
 
 Per frame: the detector finds crater boxes on the left image; SGBM computes the disparity
 once; each crater box gets a rim ellipse (contour / convex hull fitter) and the range lifter
-turns ellipse + disparity into a center and diameter in the rover frame (x forward, y left,
+turns the box's inscribed ellipse (or, with ``lift_from="fit"``, the fitted one) + disparity
+into a center and diameter in the rover frame (x forward, y left,
 z up, m). Every stage is numpy / OpenCV / scipy (``lunarnav_ml.geometry``), never torch.
 """
 
@@ -22,6 +23,8 @@ from lunarnav_ml.geometry.frames import StereoRig
 from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater, rows_needed
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.runtime.preprocess import check_image
+
+LIFT_SOURCES = ("box", "fit")
 
 
 class BoxDetector(Protocol):
@@ -81,12 +84,20 @@ class StereoCraterLocalizer:
             (:meth:`SGBMStereo.for_width`, as the geometry evaluation runs it).
         fitter: rim ellipse stage.
         lifter: range lifter thresholds (default :class:`LifterConfig`).
+        lift_from: the ellipse each crater is lifted from: "box" (the box's inscribed
+            ellipse) or "fit" (the fitted rim ellipse, or the fitter's box fallback). The
+            fitted ellipse is reported either way. "box" by default: on development renders
+            of the paper-stereo grid it gave the smaller 3D errors at every box error tried
+            (labelled boxes with each edge moved by 0-4 % of the side) and the same with a
+            detector's boxes (BENCHMARKS.md, issue 5, "Lifting from the box").
     """
 
     def __init__(self, detector: BoxDetector, rig: StereoRig, *, conf_thres: float = 0.25,
                  iou_thres: float = 0.6, stereo: SGBMStereo | None = None,
-                 fitter: EllipseFitter | None = None, lifter: LifterConfig | None = None
-                 ) -> None:
+                 fitter: EllipseFitter | None = None, lifter: LifterConfig | None = None,
+                 lift_from: str = "box") -> None:
+        if lift_from not in LIFT_SOURCES:
+            raise ConfigError(f"lift_from: expected one of {LIFT_SOURCES}, got {lift_from!r}")
         names = list(detector.class_names)
         if "crater" not in names:
             raise ConfigError(f"detector classes {names} have no 'crater'")
@@ -96,6 +107,7 @@ class StereoCraterLocalizer:
         self.stereo = stereo
         self.fitter = fitter or EllipseFitter()
         self.lifter = lifter or LifterConfig()
+        self.lift_from = lift_from
         self.timing_ms: dict[str, float] = {}  # the last frame's, see __call__
 
     def detect_boxes(self, left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -121,8 +133,12 @@ class StereoCraterLocalizer:
         fit = self.fitter(left, xywh)
         if not fit.ok:
             return Crater3D(box, score, reason=f"ellipse:{fit.reason}")
-        lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter, pair,
-                           from_box=fit.reason == BOX_FALLBACK)
+        if self.lift_from == "box":
+            lift = lift_crater(Ellipse.from_box(xywh), disparity, self.rig, self.lifter, pair,
+                               from_box=True)
+        else:
+            lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter, pair,
+                               from_box=fit.reason == BOX_FALLBACK)
         return Crater3D(box, score, fit.ellipse, fit.quality, lift,
                         "ok" if lift.ok else f"lift:{lift.reason}")
 

@@ -62,6 +62,29 @@ def test_the_lifter_reads_the_crest_from_the_pair(scene):
     np.testing.assert_array_equal(no_pair.center_m, plain.center_m)
 
 
+def test_lift_from_the_box_or_the_fitted_ellipse(scene):
+    """By default the lift starts from the box's inscribed ellipse (with the box offsets);
+    lift_from="fit" lifts the fitted one. The fitted ellipse is reported either way."""
+    from lunarnav_ml.geometry.ellipse import Ellipse
+    from lunarnav_ml.geometry.lifter import lift_crater
+
+    left, right = rgb(scene.left), rgb(scene.right)
+    by_box = StereoCraterLocalizer(TruthDetector(scene.box), scene.rig)
+    by_fit = StereoCraterLocalizer(TruthDetector(scene.box), scene.rig, lift_from="fit")
+    a, b = by_box(left, right)[0], by_fit(left, right)[0]
+    assert a.ok and b.ok and a.center_m[0] != b.center_m[0]
+    np.testing.assert_array_equal(a.ellipse.to_array(), b.ellipse.to_array())
+    box = TruthDetector(scene.box).boxes[0]
+    xywh = np.array([box[0], box[1], box[2] - box[0], box[3] - box[1]], np.float64)
+    disp = by_box.disparity(left, right)
+    want = lift_crater(Ellipse.from_box(xywh), disp, scene.rig, LifterConfig(), (left, right),
+                       from_box=True)
+    np.testing.assert_array_equal(by_box.localize_box(left, disp, box, 0.9, (left, right)).center_m,
+                                  want.center_m)
+    with pytest.raises(ConfigError, match="lift_from"):
+        StereoCraterLocalizer(TruthDetector(scene.box), scene.rig, lift_from="label")
+
+
 def test_runs_with_the_onnx_detector(scene, onnx_path):
     loc = StereoCraterLocalizer(OnnxDetector(onnx_path), scene.rig, conf_thres=0.01)
     craters = loc(rgb(scene.left), rgb(scene.right))

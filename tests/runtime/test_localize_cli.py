@@ -45,7 +45,7 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     d = sc.crater.diameter
     assert np.hypot(*(np.array(best["center_m"][:2]) - sc.center_rover[:2])) < max(1.0, 0.25 * d)
     assert abs(best["diameter_m"] - d) < 0.25 * d
-    assert out["sgbm"] == {"mode": "hh", "num_disparities": 80}
+    assert out["sgbm"] == {"mode": "hh", "num_disparities": 80} and out["lift_from"] == "box"
     assert np.array(best["covariance_xyzd"]).shape == (4, 4) and best["sigma_horizontal_m"] > 0
     assert cv2.imread(str(tmp_path / "overlay.jpg")).shape == (480, 640, 3)
     assert set(out["timing_ms"]) == {"detect", "stereo", "craters"}
@@ -56,8 +56,9 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
 def test_an_onnx_model_runs_through_the_onboard_runtime(pair, onnx_path, tmp_path):
     root, _ = pair
     assert _run(root, "--weights", str(onnx_path), "--conf", "0.01", "--threads", "1",
-                "--sgbm-mode", "3way", "--out", str(tmp_path)) == 0
+                "--sgbm-mode", "3way", "--lift-from", "fit", "--out", str(tmp_path)) == 0
     out = json.loads((tmp_path / "craters3d.json").read_text())
+    assert out["lift_from"] == "fit"
     assert out["sgbm"] == {"mode": "3way", "num_disparities": 80}  # sized to 640 px
     assert all(c["ok"] == ("center_m" in c) for c in out["craters"])
     assert out["weights"] == str(onnx_path)
