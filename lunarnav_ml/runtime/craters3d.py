@@ -87,8 +87,8 @@ class StereoCraterLocalizer:
         lift_from: the ellipse each crater is lifted from: "box" (the box's inscribed
             ellipse) or "fit" (the fitted rim ellipse, or the fitter's box fallback). The
             fitted ellipse is reported either way. "box" by default: on development renders
-            of the paper-stereo grid it gave the smaller 3D errors at every box error tried
-            (labelled boxes with each edge moved by 0-4 % of the side) and the same with a
+            of the paper-stereo grid it gave the smaller 3D errors with labelled boxes and
+            with their edges moved by 1-2 % of the side, the same at 4 % and with a
             detector's boxes (BENCHMARKS.md, issue 5, "Lifting from the box").
     """
 
