@@ -34,12 +34,15 @@ class MatchResult:
         hit: bool per entry of ``gt``: detected at the threshold.
         false_alarm_dets: the false-alarm predictions over all images.
         n_images: number of images evaluated.
+        box: (len(gt), 4) xywh px of the prediction matched to each entry of ``gt`` (NaN
+            where it was missed).
     """
 
     gt: list[dict[str, Any]]
     hit: np.ndarray
     false_alarm_dets: list[dict[str, Any]]
     n_images: int
+    box: np.ndarray | None = None
 
     @property
     def false_alarms(self) -> int:
@@ -81,14 +84,15 @@ def match_craters(
     for det in results:
         if det["category_id"] == category_id and det["score"] >= threshold:
             dt_by_img[det["image_id"]].append(det)
-    gts, hits, false_alarms = [], [], []
+    gts, boxes, false_alarms = [], [], []
     for img in gt["images"]:
         anns = gt_by_img.get(img["id"], [])
-        img_hits, img_fa = _match_image(anns, dt_by_img.get(img["id"], []), iou_thres)
+        img_boxes, img_fa = _match_image(anns, dt_by_img.get(img["id"], []), iou_thres)
         gts.extend(a for a in anns if not is_ignored(a))
-        hits.extend(img_hits)
+        boxes.extend(img_boxes)
         false_alarms.extend(img_fa)
-    return MatchResult(gts, np.asarray(hits, dtype=bool), false_alarms, len(gt["images"]))
+    box = np.asarray(boxes, dtype=float).reshape(-1, 4)
+    return MatchResult(gts, np.isfinite(box[:, 0]), false_alarms, len(gt["images"]), box)
 
 
 def is_ignored(ann: dict[str, Any]) -> bool:
@@ -104,14 +108,16 @@ def in_key_set(ann: dict[str, Any]) -> bool:
 
 def _match_image(
     anns: list[dict], dets: list[dict], iou_thres: float
-) -> tuple[list[bool], list[dict]]:
-    """Greedy matching in one image; returns hit flags for non-ignored GT and the false alarms."""
+) -> tuple[list[list[float]], list[dict]]:
+    """Greedy matching in one image; returns the matched prediction's box (xywh; NaN: missed)
+    for each non-ignored GT, and the false alarms."""
     real = [a for a in anns if not is_ignored(a)]
     ignored = [a for a in anns if is_ignored(a)]
     dets = sorted(dets, key=lambda d: -d["score"])
     hit = [False] * len(real)
+    matched = [[np.nan] * 4 for _ in real]
     if not dets:
-        return hit, []
+        return matched, []
     boxes = np.asarray([d["bbox"] for d in dets], dtype=float)
     iou_real = _iou(boxes, real)
     iou_ign = _iou(boxes, ignored, crowd=True)
@@ -119,10 +125,12 @@ def _match_image(
     for i in range(len(dets)):
         candidates = [j for j in range(len(real)) if not hit[j] and iou_real[i, j] >= iou_thres]
         if candidates:
-            hit[max(candidates, key=lambda j: iou_real[i, j])] = True
+            j = max(candidates, key=lambda j: iou_real[i, j])
+            hit[j] = True
+            matched[j] = [float(v) for v in boxes[i]]
         elif not (iou_ign.shape[1] and iou_ign[i].max() >= iou_thres):
             false_alarms.append(dets[i])
-    return hit, false_alarms
+    return matched, false_alarms
 
 
 def _iou(boxes: np.ndarray, anns: list[dict], crowd: bool = False) -> np.ndarray:
@@ -200,4 +208,26 @@ def subset(match: MatchResult, keep: np.ndarray) -> MatchResult:
     """The same match restricted to the ground-truth craters selected by ``keep``."""
     keep = np.asarray(keep, dtype=bool)
     return MatchResult([g for g, k in zip(match.gt, keep) if k], match.hit[keep],
-                       match.false_alarm_dets, match.n_images)
+                       match.false_alarm_dets, match.n_images,
+                       None if match.box is None else match.box[keep])
+
+
+def box_precision(match: MatchResult) -> dict[str, Any]:
+    """How far the detected craters' boxes are from their labels, as fractions of the label's
+    side: the robust sigma (1.4826 x MAD) of each edge's offset (left, right, top, bottom),
+    and the median width and height ratio - 1 (negative: boxes too small). The 3D lift takes a
+    crater's angular width from its box (BENCHMARKS.md, issue 5, "Lifting from the box"), so
+    these figures bound the geometry a detector allows."""
+    if match.box is None or not match.hit.any():
+        return {"n": 0}
+    gt = np.asarray([a["bbox"] for a, h in zip(match.gt, match.hit) if h], dtype=float)
+    det = match.box[match.hit]
+    side = gt[:, [2, 2, 3, 3]]
+    edges = np.column_stack([det[:, 0] - gt[:, 0], det[:, 0] + det[:, 2] - gt[:, 0] - gt[:, 2],
+                             det[:, 1] - gt[:, 1], det[:, 1] + det[:, 3] - gt[:, 1] - gt[:, 3]])
+    rel = edges / side
+    sigma = 1.4826 * np.median(np.abs(rel - np.median(rel, axis=0)), axis=0)
+    return {"n": len(gt),
+            "edge_sigma": dict(zip(("left", "right", "top", "bottom"), map(float, sigma))),
+            "width_ratio_median": float(np.median(det[:, 2] / gt[:, 2]) - 1.0),
+            "height_ratio_median": float(np.median(det[:, 3] / gt[:, 3]) - 1.0)}

@@ -9,7 +9,14 @@ from typing import Any
 import numpy as np
 
 from lunarnav_ml.eval.coco_metrics import coco_ap
-from lunarnav_ml.eval.pd import MatchResult, in_key_set, match_craters, pd_by, subset
+from lunarnav_ml.eval.pd import (
+    MatchResult,
+    box_precision,
+    in_key_set,
+    match_craters,
+    pd_by,
+    subset,
+)
 from lunarnav_ml.eval.plots import plot_pd_vs_range, plot_pd_vs_sun
 from lunarnav_ml.utils import atomic
 
@@ -38,6 +45,7 @@ def detection_metrics(
         "crater_pd_all": atomic.finite_or_none(match.pd),
         "false_alarms_per_image": match.fa_per_image,
         "n_craters": int(match.hit.size),
+        "box_precision": box_precision(match),
     }
     if match.gt and "near_rim_range_m" in match.gt[0]:
         out.update(_geometric_tables(gt, match))
@@ -51,6 +59,7 @@ def _geometric_tables(gt: dict[str, Any], match: MatchResult) -> dict[str, Any]:
     tables: dict[str, Any] = {
         "crater_pd_D5_within20m": atomic.finite_or_none(key_set.pd),
         "n_craters_D5_within20m": int(key_set.hit.size),
+        "box_precision_D5_within20m": box_precision(key_set),
         "pd_vs_range": {
             f"{lo:g}-{hi:g}": pd_by(subset(match, (diam >= lo) & (diam < hi)), "near_rim_range_m",
                                     RANGE_EDGES)
@@ -101,12 +110,34 @@ def render_markdown(metrics: dict[str, Any], title: str) -> str:
         lines.append(f"- craters D >= 5 m, near rim <= 20 m: Pd {_fmt(metrics['crater_pd_D5_within20m'])}"
                      f" (n = {metrics['n_craters_D5_within20m']})")
         lines += ["", "## Pd vs near-rim range", ""] + _range_table(metrics["pd_vs_range"])
+    lines += _box_table(metrics)
     for key, label in (("pd_vs_sun_zenith", "sun zenith"), ("pd_vs_sun_azimuth", "sun azimuth")):
         if key in metrics:
             lines += ["", f"## Pd vs {label} (craters D >= 5 m within 29 m)", "",
                       f"| {label} (deg) | n | Pd |", "|---|---|---|"]
             lines += [f"| {r['lo']:g}-{r['hi']:g} | {r['n']} | {_fmt(r['pd'])} |" for r in metrics[key]]
     return "\n".join(lines) + "\n"
+
+
+def _box_table(metrics: dict[str, Any]) -> list[str]:
+    """The detected craters' box precision (``box_precision``), all and the key set."""
+    rows = [(name, metrics[key]) for name, key in
+            (("all craters", "box_precision"), ("D >= 5 m, near rim <= 20 m",
+                                                "box_precision_D5_within20m"))
+            if metrics.get(key, {}).get("n")]
+    if not rows:
+        return []
+    lines = ["", "## Box precision of the detected craters (fractions of the label's side)", "",
+             ("Robust sigma of each edge's offset and the median size ratio - 1; the 3D lift "
+              "takes a crater's width from its box."), "",
+             "| craters | n | left | right | top | bottom | width | height |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, b in rows:
+        e = b["edge_sigma"]
+        lines.append(f"| {name} | {b['n']} | {e['left']:.3f} | {e['right']:.3f} | {e['top']:.3f} | "
+                     f"{e['bottom']:.3f} | {b['width_ratio_median']:+.3f} | "
+                     f"{b['height_ratio_median']:+.3f} |")
+    return lines
 
 
 def _range_table(pd_vs_range: dict[str, list[dict[str, Any]]]) -> list[str]:

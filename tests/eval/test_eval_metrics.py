@@ -5,7 +5,7 @@ import pytest
 
 from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.coco_metrics import coco_ap
-from lunarnav_ml.eval.pd import match_craters, pd_by, pick_operating_threshold
+from lunarnav_ml.eval.pd import box_precision, match_craters, pd_by, pick_operating_threshold
 from lunarnav_ml.eval.report import detection_metrics, render_markdown
 
 CATS = [{"id": 1, "name": "crater"}, {"id": 2, "name": "rock"}, {"id": 3, "name": "artifact"}]
@@ -65,6 +65,27 @@ def test_box_inside_an_ignored_crater_is_not_a_false_alarm():
     assert match_craters(gt, straddling, threshold=0.5).false_alarms == 0
     mostly_off = [_det(2, 1, [32, 10, 10, 10], 0.9)]  # 3 of 10 px on it
     assert match_craters(gt, mostly_off, threshold=0.5).false_alarms == 1
+
+
+def test_box_precision_of_the_matched_boxes():
+    gt = _gt()
+    # crater 1 (20 x 20 at 10, 10): left edge +2 px, right edge -2 px (width ratio 0.8);
+    # crater 2 (20 x 10 at 60, 60): found exactly; a false alarm does not count
+    results = [_det(1, 1, [12, 10, 16, 20], 0.9), _det(1, 1, [60, 60, 20, 10], 0.8),
+               _det(2, 1, [80, 0, 10, 10], 0.7)]
+    match = match_craters(gt, results, threshold=0.5)
+    np.testing.assert_array_equal(match.box[0], [12, 10, 16, 20])
+    b = box_precision(match)
+    assert b["n"] == 2
+    assert b["width_ratio_median"] == pytest.approx(-0.1)  # median of 0.8 and 1.0, minus 1
+    assert b["height_ratio_median"] == pytest.approx(0.0)
+    # per edge, two offsets (0.1 and 0): MAD 0.05, so sigma 1.4826 x 0.05
+    assert b["edge_sigma"]["left"] == pytest.approx(1.4826 * 0.05)
+    assert b["edge_sigma"]["top"] == 0.0
+    missed = match_craters(gt, [_det(1, 1, [0, 80, 10, 10], 0.9)], threshold=0.5)
+    assert np.isnan(missed.box).all() and box_precision(missed) == {"n": 0}
+    md = render_markdown(detection_metrics(gt, results, 0.5), "t")
+    assert "## Box precision of the detected craters" in md and "| all craters | 2 |" in md
 
 
 def test_threshold_and_low_iou():
