@@ -45,8 +45,9 @@ class Crater3D:
         score: detector score.
         ellipse: fitted rim ellipse (px), or None.
         ellipse_quality: 0..1 edge support of the ellipse (0 without one).
-        lift: the 3D lift (rover frame), or None when no ellipse was fitted.
-        reason: "ok", "ellipse:<why>" or "lift:<why>".
+        lift: the 3D lift (rover frame), or None when it was not tried (lifting from a fitted
+            ellipse that could not be fitted).
+        reason: "ok", "ellipse:<why>" (``lift_from="fit"`` only) or "lift:<why>".
     """
 
     box: np.ndarray
@@ -131,15 +132,16 @@ class StereoCraterLocalizer:
         """
         xywh = np.array([box[0], box[1], box[2] - box[0], box[3] - box[1]], dtype=np.float64)
         fit = self.fitter(left, xywh)
-        if not fit.ok:
-            return Crater3D(box, score, reason=f"ellipse:{fit.reason}")
-        if self.lift_from == "box":
+        if self.lift_from == "box":  # the fit is reported, but the lift does not need it
             lift = lift_crater(Ellipse.from_box(xywh), disparity, self.rig, self.lifter, pair,
                                from_box=True)
+        elif not fit.ok:
+            return Crater3D(box, score, reason=f"ellipse:{fit.reason}")
         else:
             lift = lift_crater(fit.ellipse, disparity, self.rig, self.lifter, pair,
                                from_box=fit.reason == BOX_FALLBACK)
-        return Crater3D(box, score, fit.ellipse, fit.quality, lift,
+        return Crater3D(box, score, fit.ellipse if fit.ok else None,
+                        fit.quality if fit.ok else 0.0, lift,
                         "ok" if lift.ok else f"lift:{lift.reason}")
 
     def __call__(self, left: np.ndarray, right: np.ndarray) -> list[Crater3D]:

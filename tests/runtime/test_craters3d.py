@@ -83,6 +83,18 @@ def test_lift_from_the_box_or_the_fitted_ellipse(scene):
                                   want.center_m)
     with pytest.raises(ConfigError, match="lift_from"):
         StereoCraterLocalizer(TruthDetector(scene.box), scene.rig, lift_from="label")
+    # a fit that fails: lifting from the box does not need it, lifting from the fit does
+    from lunarnav_ml.geometry.ellipse import EllipseFit
+
+    def failing(image, box_xywh):
+        return EllipseFit(None, 0.0, "no_crater_region", 0, np.zeros((0, 2)))
+
+    c = StereoCraterLocalizer(TruthDetector(scene.box), scene.rig, fitter=failing)(left, right)[0]
+    assert c.ok and c.ellipse is None and c.ellipse_quality == 0.0
+    np.testing.assert_array_equal(c.center_m, a.center_m)
+    c = StereoCraterLocalizer(TruthDetector(scene.box), scene.rig, fitter=failing,
+                              lift_from="fit")(left, right)[0]
+    assert not c.ok and c.reason == "ellipse:no_crater_region" and c.lift is None
 
 
 def test_runs_with_the_onnx_detector(scene, onnx_path):
