@@ -31,18 +31,21 @@ class MatchResult:
 
     Attributes:
         gt: the non-ignored ground-truth crater annotations, in a fixed order.
-        hit: bool per entry of ``gt``: detected at the threshold.
+        box: (len(gt), 4) xywh px of the prediction matched to each entry of ``gt`` at the
+            threshold (NaN where it was missed).
         false_alarm_dets: the false-alarm predictions over all images.
         n_images: number of images evaluated.
-        box: (len(gt), 4) xywh px of the prediction matched to each entry of ``gt`` (NaN
-            where it was missed).
     """
 
     gt: list[dict[str, Any]]
-    hit: np.ndarray
+    box: np.ndarray
     false_alarm_dets: list[dict[str, Any]]
     n_images: int
-    box: np.ndarray | None = None
+
+    @property
+    def hit(self) -> np.ndarray:
+        """bool per entry of ``gt``: detected at the threshold."""
+        return np.isfinite(self.box[:, 0])
 
     @property
     def false_alarms(self) -> int:
@@ -91,8 +94,8 @@ def match_craters(
         gts.extend(a for a in anns if not is_ignored(a))
         boxes.extend(img_boxes)
         false_alarms.extend(img_fa)
-    box = np.asarray(boxes, dtype=float).reshape(-1, 4)
-    return MatchResult(gts, np.isfinite(box[:, 0]), false_alarms, len(gt["images"]), box)
+    return MatchResult(gts, np.asarray(boxes, dtype=float).reshape(-1, 4), false_alarms,
+                       len(gt["images"]))
 
 
 def is_ignored(ann: dict[str, Any]) -> bool:
@@ -207,9 +210,8 @@ def pd_by(
 def subset(match: MatchResult, keep: np.ndarray) -> MatchResult:
     """The same match restricted to the ground-truth craters selected by ``keep``."""
     keep = np.asarray(keep, dtype=bool)
-    return MatchResult([g for g, k in zip(match.gt, keep) if k], match.hit[keep],
-                       match.false_alarm_dets, match.n_images,
-                       None if match.box is None else match.box[keep])
+    return MatchResult([g for g, k in zip(match.gt, keep) if k], match.box[keep],
+                       match.false_alarm_dets, match.n_images)
 
 
 def box_precision(match: MatchResult) -> dict[str, Any]:
@@ -218,10 +220,11 @@ def box_precision(match: MatchResult) -> dict[str, Any]:
     and the median width and height ratio - 1 (negative: boxes too small). The 3D lift takes a
     crater's angular width from its box (BENCHMARKS.md, issue 5, "Lifting from the box"), so
     these figures bound the geometry a detector allows."""
-    if match.box is None or not match.hit.any():
+    hit = match.hit
+    if not hit.any():
         return {"n": 0}
-    gt = np.asarray([a["bbox"] for a, h in zip(match.gt, match.hit) if h], dtype=float)
-    det = match.box[match.hit]
+    gt = np.asarray([a["bbox"] for a, h in zip(match.gt, hit) if h], dtype=float)
+    det = match.box[hit]
     side = gt[:, [2, 2, 3, 3]]
     edges = np.column_stack([det[:, 0] - gt[:, 0], det[:, 0] + det[:, 2] - gt[:, 0] - gt[:, 2],
                              det[:, 1] - gt[:, 1], det[:, 1] + det[:, 3] - gt[:, 1] - gt[:, 3]])

@@ -208,7 +208,7 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
 
 
 def _box_for(ann: dict[str, Any], dets: list[dict[str, Any]] | None,
-             cfg: _Settings | None = None) -> np.ndarray | None:
+             cfg: _Settings) -> np.ndarray | None:
     """The labelled box (moved by ``cfg.box_jitter``), or the best-scoring detection with IoU
     >= 0.5 (None: missed).
 
@@ -216,7 +216,7 @@ def _box_for(ann: dict[str, Any], dets: list[dict[str, Any]] | None,
     the box is shifted by -0.5 px.
     """
     box = np.asarray(ann["bbox"], dtype=np.float64)
-    if cfg is not None and cfg.box_jitter:
+    if cfg.box_jitter:
         rng = np.random.default_rng([cfg.seed, int(ann.get("id", 0))])
         box = jitter_box(box, cfg.box_jitter, rng)
     if dets is not None:
