@@ -407,7 +407,9 @@ def markdown_table(metrics: dict[str, Any]) -> str:
     t = metrics["time_per_crater_ms"]
     rendered = metrics["settings"].get("disparity") == "rendered"
     disparity_step = "reading the rendered disparity" if rendered else "SGBM"
-    lines += ["", (f"Time per crater (1 core): fit {_fmt(t['fit'], 1)} ms, lift "
+    source = metrics["settings"]["ellipse_source"]
+    ellipse_step = "fit" if source == "fit" else f"ellipse ({source}, not fitted)"
+    lines += ["", (f"Time per crater (1 core): {ellipse_step} {_fmt(t['fit'], 1)} ms, lift "
               f"{_fmt(t['lift'], 1)} ms; {disparity_step} {_fmt(t['stereo_per_image'], 0)} ms per "
               "image."), "",
               "Pd(3D) vs near-rim range (m): " + ", ".join(
