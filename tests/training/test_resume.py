@@ -93,3 +93,22 @@ def test_init_from_another_preset_with_the_same_tensors_warns(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         load_weights(build_model("small"), path, "small")
+
+
+class _FirstLoss(_Record):
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if batch_idx == 0:
+            self.first_loss = float(outputs["loss"])
+
+
+def test_channels_last_trains_like_the_default_layout(tiny_coco, tmp_path):
+    losses = {}
+    for flag in (False, True):
+        module, dm = _parts(tiny_coco, channels_last=flag)
+        record = _FirstLoss()
+        _trainer(tmp_path / str(flag), 2, record).fit(module, dm)
+        for model in (module.model, module.ema.module):
+            conv = next(m for m in model.modules() if isinstance(m, torch.nn.Conv2d))
+            assert conv.weight.is_contiguous(memory_format=torch.channels_last) == flag
+        losses[flag] = record.first_loss
+    assert losses[True] == pytest.approx(losses[False], rel=1e-4)  # same batch, same weights
