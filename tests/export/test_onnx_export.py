@@ -1,6 +1,9 @@
 """ONNX export: checker, metadata, dynamic axes, parity with eager PyTorch (pre-NMS and final
 detections), in-graph NMS, OpenCV DNN as a second runtime, bad arguments."""
 
+import copy
+import dataclasses
+
 import cv2
 import numpy as np
 import onnx
@@ -163,3 +166,13 @@ def test_export_from_checkpoint_path(parts, tmp_path):
     assert det.img_size == (96, 96) and det.metadata.model == "nano"
     batch = np.random.default_rng(1).random((1, 3, 96, 96), dtype=np.float32)
     assert_decoded_close(det.forward(batch), torch_decoded(parts, batch))
+
+
+def test_channels_last_model_exports_the_same_graph_values(parts, tmp_path):
+    """A model trained on a GPU is channels-last (DetectorModule.channels_last): its export
+    computes what the NCHW model's does."""
+    model = copy.deepcopy(parts.model).to(memory_format=torch.channels_last)
+    path = export_onnx(dataclasses.replace(parts, model=model), tmp_path / "cl.onnx")
+    batch = np.random.default_rng(7).random((1, 3, 128, 128), dtype=np.float32)
+    assert_decoded_close(OnnxDetector(path, img_size=128).forward(batch),
+                         torch_decoded(parts, batch))
