@@ -50,8 +50,8 @@ class DetectorModule(L.LightningModule):
         freeze_backbone: keep the backbone's weights and BatchNorm statistics fixed.
         val_conf_thres, val_iou_thres: post-processing during validation.
         channels_last: model and batches in channels-last (NHWC) memory format; ``None``: on
-            a GPU only (2.3x the training speed of small-relu on an H100, where NCHW
-            BatchNorm kernels took three quarters of the step; on CPU it is slower in bf16).
+            a GPU only (2.0-2.3x the model's training speed on an H100, where the NCHW
+            BatchNorm kernels took three quarters of the step; on CPU slower in bf16).
     """
 
     def __init__(self, preset: str = "nano", num_classes: int = 3,
@@ -84,7 +84,7 @@ class DetectorModule(L.LightningModule):
         self._val_seen: set[int] = set()  # image ids validated this epoch
         self._val_gt: dict[str, Any] | None = None
         self._anchors_ready = anchors is not None
-        self._channels_last = False  # decided at fit start, when the device is known
+        self._channels_last = False  # decided at setup, when the device is known
 
     # ---- set-up -------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -96,6 +96,13 @@ class DetectorModule(L.LightningModule):
             self._kmeans_anchors()
         if self.hparams.freeze_backbone:
             self.model.backbone.requires_grad_(False)
+        # here, before a strategy wraps the model (DDP's gradient buckets follow its layout)
+        flag = self.hparams.get("channels_last")  # absent from older checkpoints' settings
+        on_gpu = self._trainer is not None and self.trainer.strategy.root_device.type == "cuda"
+        self._channels_last = on_gpu if flag is None else bool(flag)
+        if self._channels_last and stage == "fit":
+            self.model.to(memory_format=torch.channels_last)
+            self.ema.to(memory_format=torch.channels_last)
 
     def _kmeans_anchors(self) -> None:
         dm = getattr(self.trainer, "datamodule", None) if self._trainer else None
@@ -107,13 +114,6 @@ class DetectorModule(L.LightningModule):
         self.ema.module.set_anchors(anchors)
         self.hparams.anchors = anchors.tolist()
         self._anchors_ready = True
-
-    def on_fit_start(self) -> None:
-        flag = self.hparams.get("channels_last")
-        self._channels_last = self.device.type == "cuda" if flag is None else bool(flag)
-        if self._channels_last:
-            self.model.to(memory_format=torch.channels_last)
-            self.ema.to(memory_format=torch.channels_last)
 
     def on_train_epoch_start(self) -> None:
         if self.hparams.freeze_backbone:
