@@ -42,11 +42,15 @@ class ModelEMA(nn.Module):
         self.updates += 1
         d = self.current_decay()
         src = model.state_dict()
+        avg, new = [], []
         for name, value in self.module.state_dict().items():
             if value.dtype.is_floating_point:
-                value.mul_(d).add_(src[name].detach(), alpha=1 - d)
+                avg.append(value)
+                new.append(src[name].detach())
             else:
                 value.copy_(src[name])
+        # one fused call for all tensors (a GPU step otherwise pays two launches per tensor)
+        torch._foreach_lerp_(avg, new, 1 - d)
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         return self.module(x)
