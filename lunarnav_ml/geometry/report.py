@@ -184,24 +184,26 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
         rig = StereoRig.from_camera_record(im["camera"])
     except InputError as err:
         raise InputError(f"{root / im['file_name']} (image id {im['id']}): {err}") from None
-    left = _read_gray(root, im["file_name"])
-    t0 = time.perf_counter()
     boxes = [_box_for(ann, dets, cfg) for ann in anns]
-    right = None
-    if cfg.disparity == "rendered":  # the right image is not needed
-        disp = read_disparity(root, im)
-    else:
-        right = _read_gray(root, im["right_file"])
-        # COCO boxes again (+0.5 px), as the matcher's band is set from them
-        used = ([b + np.array([0.5, 0.5, 0.0, 0.0]) for b in boxes if b is not None]
-                or [a["bbox"] for a in anns])
-        rows = rows_needed(np.array(used).reshape(-1, 4), left.shape[0], cfg.lifter)
-        disp = (cfg.stereo or SGBMStereo.for_width(left.shape[1]))(left, right, rows).disparity
-    stereo_s = time.perf_counter() - t0
+    used = [b for b in boxes if b is not None]
+    left = right = disp = None
+    timing = {}
+    if used:  # with detections that missed every crater there is nothing to lift
+        left = _read_gray(root, im["file_name"])
+        t0 = time.perf_counter()
+        if cfg.disparity == "rendered":  # the right image is not needed
+            disp = read_disparity(root, im)
+        else:
+            right = _read_gray(root, im["right_file"])
+            # the matcher's band from the COCO boxes (_box_for moved them by -0.5 px)
+            coco = np.array(used) + np.array([0.5, 0.5, 0.0, 0.0])
+            rows = rows_needed(coco, left.shape[0], cfg.lifter)
+            disp = (cfg.stereo or SGBMStereo.for_width(left.shape[1]))(left, right, rows).disparity
+        timing = {"stereo_s": time.perf_counter() - t0}
     rows = []
     for ann, box in zip(anns, boxes):
         row = _eval_crater(left, right, disp, rig, ann, box, cfg)
-        row.update(image_id=im["id"], stereo_s=stereo_s, camera_height_m=rig.height_m,
+        row.update(image_id=im["id"], camera_height_m=rig.height_m, **timing,
                    sun_zenith_deg=im.get("sun_zenith_deg"), sun_azimuth_deg=im.get("sun_azimuth_deg"))
         rows.append(row)
     return rows
@@ -243,9 +245,11 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     return inter / union if union > 0 else 0.0
 
 
-def _eval_crater(left: np.ndarray, right: np.ndarray | None, disp: np.ndarray, rig: StereoRig,
-                 ann: dict[str, Any], box: np.ndarray | None, cfg: _Settings) -> dict[str, Any]:
-    """Fit, lift and score one labelled crater."""
+def _eval_crater(left: np.ndarray | None, right: np.ndarray | None, disp: np.ndarray | None,
+                 rig: StereoRig, ann: dict[str, Any], box: np.ndarray | None, cfg: _Settings
+                 ) -> dict[str, Any]:
+    """Fit, lift and score one labelled crater (images and disparity are only read when
+    ``box`` is given; None: the crater was not detected)."""
     diam = float(ann["diameter_m"])
     truth = camera_to_rover(ann["center_cam_m"], rig.height_m, rig.pitch_deg, rig.roll_deg)[0]
     row: dict[str, Any] = {"ann_id": ann.get("id"), "diameter_m": diam,
