@@ -16,6 +16,7 @@ Random images with a few random boxes each; prints one line per preset.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import torch
@@ -102,7 +103,7 @@ def main() -> None:
             print(f"{preset:8s} {precision:>4s} {r['params_m']:6.2f} M params  train "
                   f"{r['train_img_s']:6.1f} img/s "
                   f"({r['step_s']:.2f} s/step)  inference {r['infer_img_s']:6.1f} img/s"
-                  + (f"  peak {r['peak_gib']:.1f} GiB" if r["peak_gib"] == r["peak_gib"] else ""))
+                  + (f"  peak {r['peak_gib']:.1f} GiB" if math.isfinite(r["peak_gib"]) else ""))
 
 
 if __name__ == "__main__":
