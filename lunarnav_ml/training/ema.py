@@ -31,15 +31,24 @@ class ModelEMA(nn.Module):
             p.requires_grad_(False)
         self.decay, self.tau = decay, tau
         self.register_buffer("updates", torch.zeros((), dtype=torch.long))
+        # the count on the host too: reading the buffer each step would wait for the device
+        self._count: int | None = None
+        self.register_load_state_dict_post_hook(_forget_count)
+
+    def _updates(self) -> int:
+        if self._count is None:
+            self._count = int(self.updates)
+        return self._count
 
     def current_decay(self) -> float:
         """Decay used by the next update."""
-        return self.decay * (1 - math.exp(-float(self.updates) / self.tau))
+        return self.decay * (1 - math.exp(-self._updates() / self.tau))
 
     @torch.no_grad()
     def update(self, model: nn.Module) -> None:
         """Move the averaged weights towards ``model``'s."""
-        self.updates += 1
+        self._count = self._updates() + 1
+        self.updates.fill_(self._count)
         d = self.current_decay()
         src = model.state_dict()
         avg, new = [], []
@@ -54,3 +63,8 @@ class ModelEMA(nn.Module):
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         return self.module(x)
+
+
+def _forget_count(module: ModelEMA, incompatible_keys) -> None:
+    """After a checkpoint is loaded, read the update count from the buffer again."""
+    module._count = None

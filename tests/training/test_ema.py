@@ -28,3 +28,21 @@ def test_update_is_the_decayed_average_and_copies_integer_buffers():
         else:
             assert torch.equal(value, src[key])
     assert ema.updates == 1
+
+
+def test_update_count_follows_a_loaded_checkpoint():
+    model = build_model("nano")
+    ema = ModelEMA(model, decay=0.9, tau=2.0)
+    for _ in range(3):
+        ema.update(model)
+    saved = {k: v.clone() for k, v in ema.state_dict().items()}
+    assert int(saved["updates"]) == 3
+    resumed = ModelEMA(model, decay=0.9, tau=2.0)
+    resumed.update(model)  # its host count is 1 now; the checkpoint says 3
+    holder = torch.nn.Module()
+    holder.ema = resumed
+    holder.load_state_dict({f"ema.{k}": v for k, v in saved.items()})  # as a parent module loads
+    assert resumed.current_decay() == ema.current_decay()
+    resumed.update(model)
+    ema.update(model)
+    assert resumed.updates == ema.updates == 4

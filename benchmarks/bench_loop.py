@@ -1,0 +1,119 @@
+"""Which side holds a training run: the loader, the step, or what lies between them.
+
+    python3 benchmarks/bench_loop.py --train data/gpu/train/annotations.json --device cuda \
+        --workers 14 --batch 64 --precision bf16 --init-from lunarnav_ml/weights/small.pt
+
+Prints images/s for each part of a training step on real batches of a COCO dataset:
+
+- ``loader``: the training DataLoader alone (workers decode, augment and collate; this
+  process only receives the batches, pinned when a GPU is used);
+- ``step``: forward, loss, backward and AdamW on a few of those batches kept on the device
+  (``bench_train.py``'s figure, with real targets);
+- ``step+ema``: the same with the weight EMA's update after each step;
+- ``step+ema+copy``: the same, each batch copied from pinned host memory first (targets too).
+
+A Lightning run's steps/s set against these tells where its time goes (BENCHMARKS.md, issue 4).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from lunarnav_ml.data.datamodule import DetectionDataModule
+from lunarnav_ml.training.module import DetectorModule
+
+
+def _to(batch: tuple, device: torch.device, channels_last: bool) -> tuple[torch.Tensor, list]:
+    images, targets, _ = batch
+    x = images.to(device, non_blocking=True).float() / 255.0
+    if channels_last:
+        x = x.contiguous(memory_format=torch.channels_last)
+    return x, [{k: v.to(device, non_blocking=True) for k, v in t.items()} for t in targets]
+
+
+def loader_rate(loader, batches: int) -> float:
+    """Images/s of the loader alone, after its first batch (worker start and prefetch)."""
+    it = iter(loader)
+    next(it)
+    n, start = 0, time.perf_counter()
+    for _ in range(batches):
+        n += len(next(it)[0])
+    return n / (time.perf_counter() - start)
+
+
+def step_rate(module: DetectorModule, batches: list, steps: int, device: torch.device,
+              precision: str, channels_last: bool, ema: bool, copy: bool) -> float:
+    """Images/s of training steps cycling over ``batches`` (host batches if ``copy``)."""
+    model, loss_fn = module.model, module.loss
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+    ready = [_to(b, device, channels_last) for b in batches] if not copy else None
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    n, warmup = 0, 3
+    for i in range(warmup + steps):
+        if i == warmup:
+            sync()
+            n, start = 0, time.perf_counter()
+        x, targets = _to(batches[i % len(batches)], device, channels_last) if copy \
+            else ready[i % len(ready)]
+        with autocast:
+            loss = loss_fn(model(x), targets, model.anchors, model.strides, model.scale_xy)
+        opt.zero_grad(set_to_none=True)
+        loss["loss"].backward()
+        opt.step()
+        if ema:
+            module.ema.update(model)
+        n += len(x)
+    sync()
+    return n / (time.perf_counter() - start)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--train", required=True, help="training annotations.json")
+    parser.add_argument("--preset", default="small-relu")
+    parser.add_argument("--init-from", help="weights to start from (anchors come with them)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--size", type=int, default=384, help="input side, px")
+    parser.add_argument("--batch", type=int, default=64)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--loader-batches", type=int, default=30)
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--precision", choices=("32", "bf16"), default="bf16")
+    parser.add_argument("--channels-last", choices=("auto", "on", "off"), default="auto",
+                        help="auto: on a GPU only, as DetectorModule(channels_last=None)")
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    channels_last = {"auto": device.type == "cuda", "on": True, "off": False}[args.channels_last]
+
+    dm = DetectionDataModule(args.train, args.train, img_size=args.size, batch_size=args.batch,
+                             num_workers=args.workers)
+    dm.setup("fit")
+    loader = dm.train_dataloader()
+    print(f"torch {torch.__version__}, {device}, batch {args.batch}, {args.size} px, "
+          f"{args.workers} workers, {args.precision}, channels-last {channels_last}")
+    print(f"loader          {loader_rate(loader, args.loader_batches):7.1f} img/s")
+
+    it = iter(loader)
+    batches = [next(it) for _ in range(4)]
+    if device.type == "cuda":
+        batches = [(b[0].pin_memory(), [{k: v.pin_memory() for k, v in t.items()} for t in b[1]],
+                    b[2]) for b in batches]
+    module = DetectorModule(args.preset, init_from=args.init_from, img_size=args.size)
+    module.setup("fit")
+    module.to(device).train()
+    if channels_last:
+        module.model.to(memory_format=torch.channels_last)
+        module.ema.to(memory_format=torch.channels_last)
+    for name, ema, copy in (("step", False, False), ("step+ema", True, False),
+                            ("step+ema+copy", True, True)):
+        rate = step_rate(module, batches, args.steps, device, args.precision, channels_last,
+                         ema, copy)
+        print(f"{name:15s} {rate:7.1f} img/s")
+
+
+if __name__ == "__main__":
+    main()
