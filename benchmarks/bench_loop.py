@@ -21,6 +21,7 @@ import argparse
 import time
 
 import torch
+from torch.utils.data import DataLoader
 
 from lunarnav_ml.data.datamodule import DetectionDataModule
 from lunarnav_ml.training.module import DetectorModule
@@ -34,9 +35,15 @@ def _to(batch: tuple, device: torch.device, channels_last: bool) -> tuple[torch.
     return x, [{k: v.to(device, non_blocking=True) for k, v in t.items()} for t in targets]
 
 
+def _endless(loader):
+    """The loader's batches epoch after epoch."""
+    while True:
+        yield from loader
+
+
 def loader_rate(loader, batches: int) -> float:
     """Images/s of the loader alone, after its first batch (worker start and prefetch)."""
-    it = iter(loader)
+    it = _endless(loader)
     next(it)
     n, start = 0, time.perf_counter()
     for _ in range(batches):
@@ -79,7 +86,9 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--size", type=int, default=384, help="input side, px")
     parser.add_argument("--batch", type=int, default=64)
-    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--workers", type=int, nargs="+", default=[2],
+                        help="loader workers; the loader is timed for each, the steps use the "
+                             "first")
     parser.add_argument("--loader-batches", type=int, default=30)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--precision", choices=("32", "bf16"), default="bf16")
@@ -89,15 +98,24 @@ def main() -> None:
     device = torch.device(args.device)
     channels_last = {"auto": device.type == "cuda", "on": True, "off": False}[args.channels_last]
 
-    dm = DetectionDataModule(args.train, args.train, img_size=args.size, batch_size=args.batch,
-                             num_workers=args.workers)
-    dm.setup("fit")
-    loader = dm.train_dataloader()
     print(f"torch {torch.__version__}, {device}, batch {args.batch}, {args.size} px, "
-          f"{args.workers} workers, {args.precision}, channels-last {channels_last}")
-    print(f"loader          {loader_rate(loader, args.loader_batches):7.1f} img/s")
+          f"{args.precision}, channels-last {channels_last}")
+    for workers in reversed(args.workers):
+        dm = DetectionDataModule(args.train, args.train, img_size=args.size,
+                                 batch_size=args.batch, num_workers=workers)
+        dm.setup("fit")
+        loader = dm.train_dataloader()
+        n = args.loader_batches if workers else max(2, args.loader_batches // 6)
+        print(f"loader, {workers:2d} workers {loader_rate(loader, n):7.1f} img/s"
+              + (" (pinned)" if loader.pin_memory else ""))
+        if loader.pin_memory:
+            unpinned = DataLoader(loader.dataset, loader.batch_size, sampler=loader.sampler,
+                                  num_workers=workers, collate_fn=loader.collate_fn,
+                                  drop_last=loader.drop_last)
+            print(f"loader, {workers:2d} workers "
+                  f"{loader_rate(unpinned, n):7.1f} img/s (not pinned)")
 
-    it = iter(loader)
+    it = _endless(loader)
     batches = [next(it) for _ in range(4)]
     if device.type == "cuda":
         batches = [(b[0].pin_memory(), [{k: v.pin_memory() for k, v in t.items()} for t in b[1]],
@@ -112,7 +130,7 @@ def main() -> None:
                             ("step+ema+copy", True, True)):
         rate = step_rate(module, batches, args.steps, device, args.precision, channels_last,
                          ema, copy)
-        print(f"{name:15s} {rate:7.1f} img/s")
+        print(f"{name:18s} {rate:7.1f} img/s")
 
 
 if __name__ == "__main__":
