@@ -21,7 +21,7 @@ lunarnav synth data/gpu/train --n 1000 --seed 0 --config configs/synth/default.y
 wait
 echo "rendered in $(( $(date +%s) - t0 )) s"
 python3 benchmarks/bench_loop.py --train data/gpu/train/annotations.json --device cuda \
-  --workers 14 --batch 64 --init-from lunarnav_ml/weights/small.pt --loader-batches 40 \
+  --workers 14 7 0 --batch 64 --init-from lunarnav_ml/weights/small.pt --loader-batches 30 \
   --steps 30 2>&1 | tee $OUT/bench_loop.txt | grep -v Warning
 for batch in 64 128; do
   rm -rf runs/small_relu_gpu
