@@ -7,15 +7,7 @@
 #   OUT=outputs/gpu_layout SITE=$PWD/.gpu/site bash benchmarks/device_layout.sh   (carry .gpu)
 set -u
 OUT=${OUT:?set OUT to the folder for the results}
-[ -n "${SITE:-}" ] && export PYTHONPATH="$SITE:${PYTHONPATH:-}"
-export PYTHONPATH="$PWD:${PYTHONPATH:-}"
-mkdir -p "$OUT"
-lunarnav() { python3 -c 'import sys; from lunarnav_ml.cli import main; sys.exit(main())' "$@"; }
-t0=$(date +%s)
-lunarnav synth data/gpu/val --n 48 --seed 1000003 --config configs/synth/default.yaml --size 384 --no-stereo --quiet --workers 4 > $OUT/synth_val.log 2>&1 &
-lunarnav synth data/gpu/train --n 1000 --seed 0 --config configs/synth/default.yaml --size 384 --no-stereo --quiet --workers 12 > $OUT/synth.log 2>&1
-wait
-echo "rendered in $(( $(date +%s) - t0 )) s"
+source "$(dirname "$0")/device_render1000.sh"
 for cl in false true; do
   rm -rf runs/small_relu_gpu
   t1=$(date +%s)

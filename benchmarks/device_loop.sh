@@ -11,15 +11,7 @@
 set -u
 OUT=${OUT:?set OUT to the folder for the results}
 RUN_S=${RUN_S:-75}
-[ -n "${SITE:-}" ] && export PYTHONPATH="$SITE:${PYTHONPATH:-}"
-export PYTHONPATH="$PWD:${PYTHONPATH:-}"
-mkdir -p "$OUT"
-lunarnav() { python3 -c 'import sys; from lunarnav_ml.cli import main; sys.exit(main())' "$@"; }
-t0=$(date +%s)
-lunarnav synth data/gpu/val --n 48 --seed 1000003 --config configs/synth/default.yaml --size 384 --no-stereo --quiet --workers 4 > $OUT/synth_val.log 2>&1 &
-lunarnav synth data/gpu/train --n 1000 --seed 0 --config configs/synth/default.yaml --size 384 --no-stereo --quiet --workers 12 > $OUT/synth.log 2>&1
-wait
-echo "rendered in $(( $(date +%s) - t0 )) s"
+source "$(dirname "$0")/device_render1000.sh"
 python3 benchmarks/bench_loop.py --train data/gpu/train/annotations.json --device cuda \
   --workers 14 7 0 --batch 64 --init-from lunarnav_ml/weights/small.pt --loader-batches 30 \
   --steps 30 2>&1 | tee $OUT/bench_loop.txt | grep -v Warning
