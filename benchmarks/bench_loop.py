@@ -18,12 +18,14 @@ A Lightning run's steps/s set against these tells where its time goes (BENCHMARK
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import torch
 from torch.utils.data import DataLoader
 
 from lunarnav_ml.data.datamodule import DetectionDataModule
+from lunarnav_ml.errors import LunarNavError
 from lunarnav_ml.training.module import DetectorModule
 
 
@@ -78,7 +80,14 @@ def step_rate(module: DetectorModule, batches: list, steps: int, device: torch.d
     return n / (time.perf_counter() - start)
 
 
-def main() -> None:
+def _loader(train: str, size: int, batch: int, workers: int) -> DataLoader:
+    """The training DataLoader of a DetectionDataModule (its cache filled at setup)."""
+    dm = DetectionDataModule(train, train, img_size=size, batch_size=batch, num_workers=workers)
+    dm.setup("fit")
+    return dm.train_dataloader()
+
+
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--train", required=True, help="training annotations.json")
     parser.add_argument("--preset", default="small-relu")
@@ -100,11 +109,15 @@ def main() -> None:
 
     print(f"torch {torch.__version__}, {device}, batch {args.batch}, {args.size} px, "
           f"{args.precision}, channels-last {channels_last}")
-    for workers in reversed(args.workers):
-        dm = DetectionDataModule(args.train, args.train, img_size=args.size,
-                                 batch_size=args.batch, num_workers=workers)
-        dm.setup("fit")
-        loader = dm.train_dataloader()
+    try:
+        module = DetectorModule(args.preset, init_from=args.init_from, img_size=args.size)
+        module.setup("fit")
+        loaders = [(w, _loader(args.train, args.size, args.batch, w))
+                   for w in reversed(args.workers)]
+    except LunarNavError as err:
+        print(f"bench_loop: error: {err}", file=sys.stderr)
+        return 2
+    for workers, loader in loaders:
         n = args.loader_batches if workers else max(2, args.loader_batches // 6)
         print(f"loader, {workers:2d} workers {loader_rate(loader, n):7.1f} img/s"
               + (" (pinned)" if loader.pin_memory else ""))
@@ -120,8 +133,6 @@ def main() -> None:
     if device.type == "cuda":
         batches = [(b[0].pin_memory(), [{k: v.pin_memory() for k, v in t.items()} for t in b[1]],
                     b[2]) for b in batches]
-    module = DetectorModule(args.preset, init_from=args.init_from, img_size=args.size)
-    module.setup("fit")
     module.to(device).train()
     if channels_last:
         module.model.to(memory_format=torch.channels_last)
@@ -131,7 +142,8 @@ def main() -> None:
         rate = step_rate(module, batches, args.steps, device, args.precision, channels_last,
                          ema, copy)
         print(f"{name:18s} {rate:7.1f} img/s")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
