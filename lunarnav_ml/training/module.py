@@ -52,6 +52,10 @@ class DetectorModule(L.LightningModule):
         channels_last: model and batches in channels-last (NHWC) memory format; ``None``: on
             a GPU only (2.0-2.3x the model's training speed on an H100, where the NCHW
             BatchNorm kernels took three quarters of the step; on CPU slower in bf16).
+        compile: run the training forward through ``torch.compile`` (the model compiled in
+            place: same weights, same checkpoint keys). On a 2-core Xeon a bf16 small-relu step
+            takes 1.16x less time after a compilation of about 40-80 s at the first step;
+            worth it for runs of more than a few minutes.
     """
 
     def __init__(self, preset: str = "nano", num_classes: int = 3,
@@ -65,7 +69,7 @@ class DetectorModule(L.LightningModule):
                  multiscale: tuple[int, int] | None = None,
                  init_from: str | None = None, freeze_backbone: bool = False,
                  val_conf_thres: float = 0.001, val_iou_thres: float = 0.6,
-                 channels_last: bool | None = None) -> None:
+                 channels_last: bool | None = None, compile: bool = False) -> None:
         super().__init__()
         if optimizer not in ("adamw", "sgd"):
             raise ConfigError(f"optimizer must be 'adamw' or 'sgd', got {optimizer!r}")
@@ -103,6 +107,8 @@ class DetectorModule(L.LightningModule):
         if self._channels_last and stage == "fit":
             self.model.to(memory_format=torch.channels_last)
             self.ema.to(memory_format=torch.channels_last)
+        if self.hparams.get("compile") and stage == "fit":
+            self.model.compile()  # in place: the state_dict keeps its keys
 
     def _kmeans_anchors(self) -> None:
         dm = getattr(self.trainer, "datamodule", None) if self._trainer else None

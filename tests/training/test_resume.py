@@ -112,3 +112,18 @@ def test_channels_last_trains_like_the_default_layout(tiny_coco, tmp_path):
             assert conv.weight.is_contiguous(memory_format=torch.channels_last) == flag
         losses[flag] = record.first_loss
     assert losses[True] == pytest.approx(losses[False], rel=1e-4)  # same batch, same weights
+
+
+def test_compiled_training_matches_eager_and_keeps_checkpoint_keys(tiny_coco, tmp_path):
+    losses, keys = {}, {}
+    for flag in (False, True):
+        module, dm = _parts(tiny_coco, compile=flag)
+        record = _FirstLoss()
+        _trainer(tmp_path / str(flag), 2, record).fit(module, dm)
+        assert (module.model._compiled_call_impl is not None) == flag
+        losses[flag] = record.first_loss
+        saved = torch.load(tmp_path / str(flag) / "ckpt" / "last.ckpt", map_location="cpu",
+                           weights_only=False)
+        keys[flag] = sorted(saved["state_dict"])
+    assert losses[True] == pytest.approx(losses[False], rel=1e-4)  # same batch, same weights
+    assert keys[True] == keys[False]  # a compiled run's checkpoint loads anywhere
