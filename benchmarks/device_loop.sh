@@ -8,6 +8,7 @@
 #   3. the same at batch 128 (a run held by per-step work, not per-image work, gains images/s).
 #
 #   OUT=outputs/gpu_loop SITE=$PWD/.gpu/site bash benchmarks/device_loop.sh   (carry .gpu)
+# EXTRA: more `train.py fit` arguments for the two Lightning runs (e.g. "--model.compile true").
 set -u
 OUT=${OUT:?set OUT to the folder for the results}
 RUN_S=${RUN_S:-75}
@@ -23,7 +24,7 @@ for batch in 64 128; do
   python3 train.py fit --config configs/small_relu_gpu.yaml --data.train data/gpu/train/annotations.json \
     --data.read_sizes null --data.weights null --data.num_workers 14 --data.batch_size $batch \
     --trainer.max_time $(printf '00:00:%02d:%02d' $((RUN_S / 60)) $((RUN_S % 60))) --trainer.enable_progress_bar false \
-    --trainer.check_val_every_n_epoch 1000 --trainer.profiler simple > $OUT/train_$batch.txt 2>&1
+    --trainer.check_val_every_n_epoch 1000 --trainer.profiler simple ${EXTRA:-} > $OUT/train_$batch.txt 2>&1
   kill $smi
   echo "batch $batch: wall $(( $(date +%s) - t1 )) s; last epoch,step: $(tail -n 1 runs/small_relu_gpu/csv/*/metrics.csv | cut -d, -f1,4)"
   echo "  GPU utilisation (1 s samples): median $(sort -n $OUT/util_$batch.txt | awk '{a[NR]=$1} END {print a[int(NR/2)+1]}') %"
