@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Where a GPU training run's time goes (issue 4, BENCHMARKS.md "GPU throughput per preset"):
+# Where a GPU training run's time goes (issue 4, BENCHMARKS.md "Where a GPU run's time goes"):
 # render 1,000 default 384 px frames on the machine's cores, then
 #   1. benchmarks/bench_loop.py: the loader alone, the step on real batches kept on the GPU,
 #      with the EMA update, and with each batch copied from pinned memory;
@@ -27,7 +27,7 @@ for batch in 64 128; do
     --trainer.check_val_every_n_epoch 1000 --trainer.profiler simple ${EXTRA:-} > $OUT/train_$batch.txt 2>&1
   kill $smi
   echo "batch $batch: wall $(( $(date +%s) - t1 )) s; last epoch,step: $(tail -n 1 runs/small_relu_gpu/csv/*/metrics.csv | cut -d, -f1,4)"
-  echo "  GPU utilisation (1 s samples): median $(sort -n $OUT/util_$batch.txt | awk '{a[NR]=$1} END {print a[int(NR/2)+1]}') %"
+  echo "  GPU utilisation, 1 s samples (start-up included): $(awk '$1 > 0' $OUT/util_$batch.txt | wc -l) of $(wc -l < $OUT/util_$batch.txt) with a kernel running, mean $(awk '{s += $1} END {printf "%.0f", s / NR}' $OUT/util_$batch.txt) %"
   grep -E "run_training_batch|train_dataloader_next|optimizer_step|training_step|backward|batch_to_device|Total  " $OUT/train_$batch.txt | tr -s " \t" " " | head -10
   cp runs/small_relu_gpu/csv/*/metrics.csv $OUT/metrics_$batch.csv 2>/dev/null
 done
