@@ -22,6 +22,7 @@ import sys
 import time
 
 import torch
+from bench_train import time_steps
 from torch.utils.data import DataLoader
 
 from lunarnav_ml.data.datamodule import DetectionDataModule
@@ -55,29 +56,20 @@ def loader_rate(loader, batches: int) -> float:
 
 def step_rate(module: DetectorModule, batches: list, steps: int, device: torch.device,
               precision: str, channels_last: bool, ema: bool, copy: bool) -> float:
-    """Images/s of training steps cycling over ``batches`` (host batches if ``copy``)."""
-    model, loss_fn = module.model, module.loss
-    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
-    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+    """Images/s of training steps cycling over ``batches`` (host batches if ``copy``), after
+    three untimed steps."""
+    model = module.model
     ready = [_to(b, device, channels_last) for b in batches] if not copy else None
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    n, warmup = 0, 3
-    for i in range(warmup + steps):
-        if i == warmup:
-            sync()
-            n, start = 0, time.perf_counter()
-        x, targets = _to(batches[i % len(batches)], device, channels_last) if copy \
-            else ready[i % len(ready)]
-        with autocast:
-            loss = loss_fn(model(x), targets, model.anchors, model.strides, model.scale_xy)
-        opt.zero_grad(set_to_none=True)
-        loss["loss"].backward()
-        opt.step()
-        if ema:
-            module.ema.update(model)
-        n += len(x)
-    sync()
-    return n / (time.perf_counter() - start)
+
+    def batch_at(i: int) -> tuple[torch.Tensor, list]:
+        if copy:
+            return _to(batches[i % len(batches)], device, channels_last)
+        return ready[i % len(ready)]
+
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+    step_s = time_steps(model, module.loss, opt, batch_at, steps, 3, device, precision,
+                        (lambda: module.ema.update(model)) if ema else None)
+    return len(batches[0][0]) / step_s
 
 
 def _loader(train: str, size: int, batch: int, workers: int) -> DataLoader:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from collections.abc import Callable
 
 import torch
 
@@ -33,6 +34,30 @@ def _targets(batch: int, size: int, gen: torch.Generator) -> list[dict[str, torc
         out.append({"boxes": torch.cat([xy, xy + wh], 1).clamp(max=size),
                     "labels": torch.randint(1, 4, (6,), generator=gen)})
     return out
+
+
+def time_steps(model: torch.nn.Module, loss_fn: YOLOLoss, opt: torch.optim.Optimizer,
+               batch_at: Callable[[int], tuple[torch.Tensor, list[dict]]], steps: int,
+               warmup: int, device: torch.device, precision: str = "32",
+               after_step: Callable[[], None] | None = None) -> float:
+    """Seconds per training step (forward and loss, under bf16 autocast if asked; backward;
+    optimizer step; then ``after_step``) on ``batch_at(i)``, after ``warmup`` untimed steps."""
+    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    for i in range(warmup + steps):
+        if i == warmup:
+            sync()
+            start = time.perf_counter()
+        x, targets = batch_at(i)
+        with autocast:
+            loss = loss_fn(model(x), targets, model.anchors, model.strides, model.scale_xy)["loss"]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if after_step is not None:
+            after_step()
+    sync()
+    return (time.perf_counter() - start) / steps
 
 
 def bench(preset: str, size: int, batch: int, steps: int, warmup: int,
@@ -54,17 +79,7 @@ def bench(preset: str, size: int, batch: int, steps: int, warmup: int,
     sync = torch.cuda.synchronize if cuda else (lambda: None)
     if cuda:
         torch.cuda.reset_peak_memory_stats(dev)
-    for i in range(warmup + steps):
-        if i == warmup:
-            sync()
-            start = time.perf_counter()
-        with autocast:
-            loss = loss_fn(model(x), targets, model.anchors, model.strides, model.scale_xy)["loss"]
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-    sync()
-    step = (time.perf_counter() - start) / steps
+    step = time_steps(model, loss_fn, opt, lambda i: (x, targets), steps, warmup, dev, precision)
     model.eval()
     with torch.no_grad(), autocast:
         model(x)
