@@ -117,23 +117,21 @@ def _match_image(
     real = [a for a in anns if not is_ignored(a)]
     ignored = [a for a in anns if is_ignored(a)]
     dets = sorted(dets, key=lambda d: -d["score"])
-    hit = [False] * len(real)
-    matched = [[np.nan] * 4 for _ in real]
+    matched = np.full((len(real), 4), np.nan)
     if not dets:
-        return matched, []
+        return matched.tolist(), []
     boxes = np.asarray([d["bbox"] for d in dets], dtype=float)
     iou_real = _iou(boxes, real)
     iou_ign = _iou(boxes, ignored, crowd=True)
     false_alarms = []
     for i in range(len(dets)):
-        candidates = [j for j in range(len(real)) if not hit[j] and iou_real[i, j] >= iou_thres]
+        free = np.isnan(matched[:, 0])
+        candidates = [j for j in range(len(real)) if free[j] and iou_real[i, j] >= iou_thres]
         if candidates:
-            j = max(candidates, key=lambda j: iou_real[i, j])
-            hit[j] = True
-            matched[j] = [float(v) for v in boxes[i]]
+            matched[max(candidates, key=lambda j: iou_real[i, j])] = boxes[i]
         elif not (iou_ign.shape[1] and iou_ign[i].max() >= iou_thres):
             false_alarms.append(dets[i])
-    return matched, false_alarms
+    return matched.tolist(), false_alarms
 
 
 def _iou(boxes: np.ndarray, anns: list[dict], crowd: bool = False) -> np.ndarray:
