@@ -10,7 +10,10 @@ Prints images/s for each part of a training step on real batches of a COCO datas
 - ``step``: forward, loss, backward and AdamW on a few of those batches kept on the device
   (``bench_train.py``'s figure, with real targets);
 - ``step+ema``: the same with the weight EMA's update after each step;
-- ``step+ema+copy``: the same, each batch copied from pinned host memory first (targets too).
+- ``step+ema+copy``: the same, each batch copied from pinned host memory first (targets too);
+- the ``host targets`` rows: the same with the loss's targets prepared on the host before the
+  copy (``YOLOLoss.prepare``, what a Lightning run does since session 39), so that the step
+  waits on nothing on the device.
 
 A Lightning run's steps/s set against these tells where its time goes (BENCHMARKS.md, issue 4).
 """
@@ -20,6 +23,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
+from typing import Any
 
 import torch
 from bench_train import time_steps
@@ -27,14 +32,23 @@ from torch.utils.data import DataLoader
 
 from lunarnav_ml.data.datamodule import DetectionDataModule
 from lunarnav_ml.errors import LunarNavError
+from lunarnav_ml.losses.yolo_loss import PreparedTargets
 from lunarnav_ml.training.module import DetectorModule
 
 
-def _to(batch: tuple, device: torch.device, channels_last: bool) -> tuple[torch.Tensor, list]:
+def _to(batch: tuple, device: torch.device, channels_last: bool,
+        prepare: Callable[[list, int], PreparedTargets] | None = None) -> tuple[torch.Tensor, Any]:
+    """A batch on ``device``: the network input, and its targets, prepared on the host first
+    when ``prepare`` is given."""
     images, targets, _ = batch
     x = images.to(device, non_blocking=True).float() / 255.0
     if channels_last:
         x = x.contiguous(memory_format=torch.channels_last)
+    if prepare is not None:
+        prepared = prepare(targets, len(images))
+        if device.type == "cuda":
+            prepared = prepared.pin_memory()
+        return x, prepared.to(device)
     return x, [{k: v.to(device, non_blocking=True) for k, v in t.items()} for t in targets]
 
 
@@ -55,15 +69,25 @@ def loader_rate(loader, batches: int) -> float:
 
 
 def step_rate(module: DetectorModule, batches: list, steps: int, device: torch.device,
-              precision: str, channels_last: bool, ema: bool, copy: bool) -> float:
-    """Images/s of training steps cycling over ``batches`` (host batches if ``copy``), after
-    three untimed steps."""
+              precision: str, channels_last: bool, ema: bool, copy: bool,
+              host_targets: bool = False) -> float:
+    """Images/s of training steps cycling over ``batches`` (host batches if ``copy``, their
+    targets prepared on the host each time if ``host_targets``), after three untimed steps."""
     model = module.model
-    ready = [_to(b, device, channels_last) for b in batches] if not copy else None
+    prepare = None
+    if host_targets:
+        side = batches[0][0].shape[-1]
+        grids = [(-(-side // s),) * 2 for s in model.strides]
+        anchors = model.anchors.detach().cpu()
 
-    def batch_at(i: int) -> tuple[torch.Tensor, list]:
+        def prepare(targets: list, n: int) -> PreparedTargets:
+            return module.loss.prepare(targets, n, grids, anchors, model.strides, model.scale_xy)
+
+    ready = [_to(b, device, channels_last, prepare) for b in batches] if not copy else None
+
+    def batch_at(i: int) -> tuple[torch.Tensor, Any]:
         if copy:
-            return _to(batches[i % len(batches)], device, channels_last)
+            return _to(batches[i % len(batches)], device, channels_last, prepare)
         return ready[i % len(ready)]
 
     opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
@@ -129,11 +153,13 @@ def main() -> int:
     if channels_last:
         module.model.to(memory_format=torch.channels_last)
         module.ema.to(memory_format=torch.channels_last)
-    for name, ema, copy in (("step", False, False), ("step+ema", True, False),
-                            ("step+ema+copy", True, True)):
+    for name, ema, copy, host in (
+            ("step", False, False, False), ("step+ema", True, False, False),
+            ("step+ema+copy", True, True, False), ("step, host targets", False, False, True),
+            ("step+ema+copy, host targets", True, True, True)):
         rate = step_rate(module, batches, args.steps, device, args.precision, channels_last,
-                         ema, copy)
-        print(f"{name:18s} {rate:7.1f} img/s")
+                         ema, copy, host)
+        print(f"{name:28s} {rate:7.1f} img/s")
     return 0
 
 

@@ -3,15 +3,31 @@ box exceeds a threshold is a positive, and the best-matching anchor always is.""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
 from lunarnav_ml.losses.iou import wh_iou
 
 
+class TensorFields:
+    """For a dataclass whose fields are all tensors: moved or pinned together."""
+
+    def to(self, device: torch.device | str, non_blocking: bool | None = None):
+        """The same on ``device`` (tensors already there are not copied); ``non_blocking``
+        defaults to True towards a GPU (asynchronous from pinned memory)."""
+        if non_blocking is None:
+            non_blocking = torch.device(device).type == "cuda"
+        return type(self)(*(getattr(self, f.name).to(device, non_blocking=non_blocking)
+                            for f in fields(self)))
+
+    def pin_memory(self):
+        """A copy in page-locked host memory (asynchronous copies to a GPU)."""
+        return type(self)(*(getattr(self, f.name).pin_memory() for f in fields(self)))
+
+
 @dataclass
-class LevelTargets:
+class LevelTargets(TensorFields):
     """Positives of one scale: where they sit and what they should predict."""
 
     batch: torch.Tensor  # (P,) image index in the batch

@@ -11,7 +11,14 @@ import torch.nn.functional as F
 from torch import nn
 from torchvision.ops import box_convert
 
-from lunarnav_ml.losses.assigner import LevelTargets, assign, flatten_targets, per_image
+from lunarnav_ml.errors import InputError
+from lunarnav_ml.losses.assigner import (
+    LevelTargets,
+    TensorFields,
+    assign,
+    flatten_targets,
+    per_image,
+)
 from lunarnav_ml.losses.iou import batched_box_iou, ciou
 from lunarnav_ml.losses.targets import check_targets
 from lunarnav_ml.models.decode import MAX_LOG_WH, decode_xywh, split_raw
@@ -46,41 +53,67 @@ class YOLOLoss(nn.Module):
         self.weights = (box_weight, obj_weight, cls_weight)
         self.obj_iou_ratio = obj_iou_ratio
 
-    def forward(self, raw: Sequence[torch.Tensor], targets: list[dict[str, torch.Tensor]],
-                anchors: torch.Tensor, strides: Sequence[int], scale_xy: Sequence[float]
-                ) -> dict[str, torch.Tensor]:
+    def forward(self, raw: Sequence[torch.Tensor],
+                targets: list[dict[str, torch.Tensor]] | PreparedTargets, anchors: torch.Tensor,
+                strides: Sequence[int], scale_xy: Sequence[float]) -> dict[str, torch.Tensor]:
         """Compute the loss terms.
 
         Args:
             raw: per scale :math:`(B, A (5 + K), H_i, W_i)` head maps.
             targets: per image ``{"boxes": (N, 4) xyxy input px, "labels": (N,) ids 1..K,
-                "ignore": (N,) bool}``.
+                "ignore": (N,) bool}``, or those targets already through :meth:`prepare`
+                (then nothing here waits on the device: see :meth:`prepare`).
             anchors: :math:`(L, A, 2)` px; strides, scale_xy: per scale.
 
         Returns:
             ``{"box", "obj", "cls", "loss"}`` scalar tensors (``loss`` is their sum).
         """
-        check_targets(targets, self.num_classes, raw[0].shape[0])
         raw = [x.float() for x in raw]  # under AMP the head maps are float16
-        gt, ign = flatten_targets(targets, raw[0].device)
-        grids = [(x.shape[2], x.shape[3]) for x in raw]
-        neighbors = tuple(s >= 2.0 for s in scale_xy)  # reachable neighbour cells are positives
-        assigned = assign(gt, anchors, tuple(strides), grids, self.anchor_iou_thresh, neighbors)
-        regions = padded_regions(gt, ign, raw[0].shape[0])  # once for every scale's ignore mask
+        grids = tuple((x.shape[2], x.shape[3]) for x in raw)
+        if isinstance(targets, PreparedTargets):
+            if targets.grids != grids or targets.regions.gt.shape[0] != raw[0].shape[0]:
+                raise InputError(f"prepared targets are for a batch of "
+                                 f"{targets.regions.gt.shape[0]} on grids {targets.grids}, the "
+                                 f"head maps a batch of {raw[0].shape[0]} on {grids}")
+            prepared = targets.to(raw[0].device)
+        else:
+            prepared = self.prepare(targets, raw[0].shape[0], grids, anchors, strides, scale_xy)
         balance = LEVEL_BALANCE.get(len(raw), (1.0,) * len(raw))
         zero = raw[0].sum() * 0.0
         box, obj, cls = zero, zero, zero
         n_box = 0
         for level, x in enumerate(raw):
             p = split_raw(x, anchors.shape[1])
-            pos = assigned[level]
-            b_l, o_l, c_l = self._level(p, pos, regions, anchors[level], strides[level],
-                                        scale_xy[level])
+            pos = prepared.assigned[level]
+            b_l, o_l, c_l = self._level(p, pos, prepared.regions, anchors[level],
+                                        strides[level], scale_xy[level])
             box, cls = box + b_l * len(pos.batch), cls + c_l * len(pos.batch)
             n_box += len(pos.batch)
             obj = obj + o_l * balance[level]
         box, cls = box / max(n_box, 1), cls / max(n_box, 1)
         return self._weighted(box, obj, cls, raw, strides)
+
+    def prepare(self, targets: list[dict[str, torch.Tensor]], batch_size: int,
+                grids: Sequence[tuple[int, int]], anchors: torch.Tensor, strides: Sequence[int],
+                scale_xy: Sequence[float]) -> PreparedTargets:
+        """Check a batch's targets, assign them to anchors and cells and group them by image,
+        on the device of ``targets`` and ``anchors``.
+
+        This is the part of the loss whose sizes depend on the values (how many positives,
+        how many boxes in the fullest image): on a GPU each such size is a synchronisation
+        with the host. Done on the host before the batch goes to the GPU, the loss that
+        follows waits on nothing, so the host can queue the next steps' kernels meanwhile.
+
+        Args:
+            grids: :math:`(H_i, W_i)` cells of each scale (the head maps' last two sides).
+        """
+        check_targets(targets, self.num_classes, batch_size)
+        gt, ign = flatten_targets(targets, anchors.device)
+        neighbors = tuple(s >= 2.0 for s in scale_xy)  # reachable neighbour cells are positives
+        grids = tuple((int(h), int(w)) for h, w in grids)
+        assigned = assign(gt, anchors, tuple(strides), list(grids), self.anchor_iou_thresh,
+                          neighbors)
+        return PreparedTargets(grids, assigned, padded_regions(gt, ign, batch_size))
 
     def _weighted(self, box, obj, cls, raw, strides) -> dict[str, torch.Tensor]:
         levels = len(raw)
@@ -153,7 +186,30 @@ class YOLOLoss(nn.Module):
 
 
 @dataclass
-class PaddedRegions:
+class PreparedTargets:
+    """A batch's targets through :meth:`YOLOLoss.prepare`: the positives of each scale and
+    the padded regions of each image, for head maps on ``grids``."""
+
+    grids: tuple[tuple[int, int], ...]
+    assigned: list[LevelTargets]
+    regions: PaddedRegions
+
+    def to(self, device: torch.device | str, non_blocking: bool | None = None
+           ) -> PreparedTargets:
+        """The same on ``device`` (tensors already there are not copied); ``non_blocking``
+        defaults to True towards a GPU (asynchronous from pinned memory)."""
+        return PreparedTargets(self.grids, [lv.to(device, non_blocking) for lv in self.assigned],
+                               self.regions.to(device, non_blocking))
+
+    def pin_memory(self) -> PreparedTargets:
+        """A copy in page-locked memory (asynchronous copies to a GPU; the DataLoader's
+        ``pin_memory`` protocol)."""
+        return PreparedTargets(self.grids, [lv.pin_memory() for lv in self.assigned],
+                               self.regions.pin_memory())
+
+
+@dataclass
+class PaddedRegions(TensorFields):
     """A batch's boxes to learn and ignore regions, ``xyxy`` px, grouped by image and padded:
     :math:`(B, G, 4)` and :math:`(B, Q, 4)`, with :math:`(B, G)`, :math:`(B, Q)` masks of the
     real rows."""
@@ -169,3 +225,4 @@ def padded_regions(gt: torch.Tensor, ign: torch.Tensor, batch: int) -> PaddedReg
     g, g_valid = per_image(gt[:, 0].long(), box_convert(gt[:, 2:6], "cxcywh", "xyxy"), batch)
     r, r_valid = per_image(ign[:, 0].long(), ign[:, 1:5], batch)
     return PaddedRegions(g, g_valid, r, r_valid)
+

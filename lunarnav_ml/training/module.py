@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -16,12 +17,18 @@ from lunarnav_ml.data.coco import default_class_names
 from lunarnav_ml.data.letterbox import LetterboxInfo
 from lunarnav_ml.errors import ConfigError
 from lunarnav_ml.losses import YOLOLoss
+from lunarnav_ml.losses.yolo_loss import PreparedTargets
 from lunarnav_ml.models import build_model, decode, postprocess
 from lunarnav_ml.training.checkpoint import load_weights
 from lunarnav_ml.training.ema import ModelEMA
 from lunarnav_ml.training.schedule import WarmupCosine
 
 Batch = tuple[torch.Tensor, list[dict[str, torch.Tensor]], list[dict[str, Any]]]
+
+# the module's on_before_batch_transfer is meant to run with a DataModule beside it (it needs
+# the model's anchors and strides); Lightning warns about every such pair
+warnings.filterwarnings("ignore", message="You have overridden `on_before_batch_transfer` in "
+                        "`LightningModule` but have passed in a `LightningDataModule`")
 
 
 class DetectorModule(L.LightningModule):
@@ -90,6 +97,7 @@ class DetectorModule(L.LightningModule):
         self._val_gt: dict[str, Any] | None = None
         self._anchors_ready = anchors is not None
         self._channels_last = False  # decided at setup, when the device is known
+        self._host_anchors = self.model.anchors.detach().clone()
 
     # ---- set-up -------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -131,21 +139,54 @@ class DetectorModule(L.LightningModule):
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         return self.model(x)
 
-    def _prepare(self, batch: Batch, train: bool) -> tuple[torch.Tensor, list[dict]]:
-        images, targets, _ = batch
+    def on_train_start(self) -> None:
+        # a host copy of the anchors for on_before_batch_transfer (they are fixed by now:
+        # k-means, init_from and a resumed checkpoint all come before this hook)
+        self._host_anchors = self.model.anchors.detach().cpu()
+
+    def on_before_batch_transfer(self, batch: Batch, dataloader_idx: int) -> Any:
+        """Training batches: draw the multi-scale side and prepare the loss's targets here,
+        on the host, before the batch goes to the device (:meth:`YOLOLoss.prepare`: on a GPU
+        the step then waits on nothing and the host queues work ahead)."""
+        if self._trainer is None or not self.trainer.training:
+            return batch
+        images, targets, metas = batch
+        side = self._train_side(images.shape[-1])
+        targets = _scaled(targets, side / images.shape[-1])
+        model = self.model
+        grids = [(-(-side // s),) * 2 for s in model.strides]  # each stride-2 step rounds up
+        prepared = self.loss.prepare(targets, len(images), grids, self._host_anchors,
+                                     model.strides, model.scale_xy)
+        if images.is_pinned():
+            prepared = prepared.pin_memory()
+        return images, prepared, metas, side
+
+    def _train_side(self, side: int) -> int:
+        """The input side of a training batch: a multiple of 32 in ``multiscale``'s range,
+        drawn per batch, or the loader's ``side``."""
+        if not self.hparams.multiscale:
+            return side
+        lo, hi = (v // 32 for v in self.hparams.multiscale)
+        return 32 * int(torch.randint(lo, hi + 1, (1,)))
+
+    def _prepare(self, batch: Batch | tuple, train: bool) -> tuple[torch.Tensor, Any]:
+        """Network input and targets of a batch: ``(images, targets, metas)``, or a training
+        batch through :meth:`on_before_batch_transfer` (``(images, prepared targets, metas,
+        side)``)."""
+        if len(batch) == 4:
+            images, targets, _, side = batch
+        else:
+            images, targets, _ = batch
+            side = self._train_side(images.shape[-1]) if train else images.shape[-1]
+            targets = _scaled(targets, side / images.shape[-1])
         x = images.float() / 255.0
         if self._channels_last or not train:  # inference is faster in it on a CPU too
             x = x.contiguous(memory_format=torch.channels_last)
-        if train and self.hparams.multiscale:
-            lo, hi = (v // 32 for v in self.hparams.multiscale)
-            size = 32 * int(torch.randint(lo, hi + 1, (1,)))
-            if size != x.shape[-1]:
-                ratio = size / x.shape[-1]
-                x = F.interpolate(x, size=(size, size), mode="bilinear", align_corners=False)
-                targets = [{**t, "boxes": t["boxes"] * ratio} for t in targets]
+        if side != x.shape[-1]:
+            x = F.interpolate(x, size=(side, side), mode="bilinear", align_corners=False)
         return x, targets
 
-    def _losses(self, model: nn.Module, x: torch.Tensor, targets: list[dict]
+    def _losses(self, model: nn.Module, x: torch.Tensor, targets: list[dict] | PreparedTargets
                 ) -> dict[str, torch.Tensor]:
         return self.loss(model(x), targets, model.anchors, model.strides, model.scale_xy)
 
@@ -216,6 +257,11 @@ class DetectorModule(L.LightningModule):
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["hyper_parameters"]["anchors"] = self.model.anchors.tolist()
+
+
+def _scaled(targets: list[dict[str, torch.Tensor]], ratio: float) -> list[dict[str, torch.Tensor]]:
+    """Targets of an input resized by ``ratio``."""
+    return targets if ratio == 1 else [{**t, "boxes": t["boxes"] * ratio} for t in targets]
 
 
 def _coco_results(pred: dict[str, torch.Tensor], meta: dict[str, Any]) -> list[dict[str, Any]]:

@@ -201,3 +201,39 @@ def test_flatten_keeps_image_order_and_ignore_split():
                                             "labels": torch.zeros(0, dtype=torch.long)}],
                                           torch.device("cpu"))
     assert empty_gt.shape == (0, 6) and empty_ign.shape == (0, 5)
+
+
+def test_prepared_targets_give_the_same_loss_to_the_bit():
+    from lunarnav_ml.losses.yolo_loss import PreparedTargets
+    model = _model()
+    gen = torch.Generator().manual_seed(5)
+    targets = _random_targets(gen, 8, 64.0)
+    raw = model(torch.rand(8, 3, 64, 64, generator=gen))
+    loss_fn = YOLOLoss(3)
+    grids = [(x.shape[2], x.shape[3]) for x in raw]
+    prepared = loss_fn.prepare(targets, 8, grids, model.anchors.clone(), model.strides,
+                               model.scale_xy)
+    assert isinstance(prepared, PreparedTargets) and sum(len(lv.batch) for lv in prepared.assigned)
+    want = loss_fn(raw, targets, model.anchors, model.strides, model.scale_xy)
+    got = loss_fn(raw, prepared, model.anchors, model.strides, model.scale_xy)
+    for k in want:
+        torch.testing.assert_close(got[k], want[k], rtol=0, atol=0)
+    moved = prepared.to("cpu")  # the tensors stay where they are
+    assert moved.assigned[0].boxes is prepared.assigned[0].boxes
+
+
+def test_prepared_targets_for_other_grids_or_batch_raise():
+    model = _model()
+    raw = model(torch.rand(2, 3, 64, 64))
+    loss_fn = YOLOLoss(3)
+    args = (model.anchors, model.strides, model.scale_xy)
+    bigger = loss_fn.prepare(_targets(), 2, [(16, 16), (8, 8), (4, 4)], *args)
+    with pytest.raises(InputError, match=r"grids \(\(16, 16\).*on \(\(8, 8\)"):
+        loss_fn(raw, bigger, *args)
+    three = _targets() + [_targets()[1]]
+    other = loss_fn.prepare(three, 3, [(8, 8), (4, 4), (2, 2)], *args)
+    with pytest.raises(InputError, match="a batch of 3 .* a batch of 2"):
+        loss_fn(raw, other, *args)
+    with pytest.raises(InputError, match="is not finite"):  # prepare checks the values
+        bad = [{"boxes": torch.tensor([[1.0, 2.0, math.nan, 9.0]]), "labels": torch.tensor([1])}]
+        loss_fn.prepare(bad, 1, [(8, 8), (4, 4), (2, 2)], *args)

@@ -33,3 +33,6 @@ def test_loader_rate_runs_past_an_epoch_and_steps_train(tiny_coco):
     assert math.isfinite(rate) and rate > 0
     assert any(not torch.equal(a, p) for a, p in zip(before, module.model.parameters()))
     assert int(module.ema.updates) == 5  # three warm-up steps and two timed ones
+    rate = bench_loop.step_rate(module, batches, 2, torch.device("cpu"), "32",
+                                channels_last=False, ema=True, copy=True, host_targets=True)
+    assert math.isfinite(rate) and rate > 0 and int(module.ema.updates) == 10

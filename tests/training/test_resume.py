@@ -128,3 +128,43 @@ def test_compiled_training_matches_eager_and_keeps_checkpoint_keys(tiny_coco, tm
         keys[flag] = sorted(saved["state_dict"])
     assert losses[True] == pytest.approx(losses[False], rel=1e-4)  # same batch, same weights
     assert keys[True] == keys[False]  # a compiled run's checkpoint loads anywhere
+
+
+class _HostPrepared(DetectorModule):
+    """Keeps each training batch as the loader gave it, and the RNG state before the hook."""
+
+    def on_before_batch_transfer(self, batch, dataloader_idx):
+        if self.trainer.training:
+            self.raw_batch, self.rng = batch, torch.get_rng_state()
+        return super().on_before_batch_transfer(batch, dataloader_idx)
+
+
+class _CompareLosses(L.Callback):
+    """The step's loss from the host-prepared batch against the loss from the plain one."""
+
+    def __init__(self):
+        self.pairs, self.sides = [], []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        from lunarnav_ml.losses.yolo_loss import PreparedTargets
+        assert len(batch) == 4 and isinstance(batch[1], PreparedTargets)
+        with torch.no_grad():
+            new = pl_module._losses(pl_module.model, *pl_module._prepare(batch, True))
+            state = torch.get_rng_state()
+            torch.set_rng_state(pl_module.rng)  # the same multi-scale draw
+            old = pl_module._losses(pl_module.model, *pl_module._prepare(pl_module.raw_batch, True))
+            torch.set_rng_state(state)
+        self.pairs.append((float(new["loss"]), float(old["loss"])))
+        self.sides.append(batch[3])
+
+
+def test_targets_prepared_on_the_host_give_the_device_path_loss(tiny_coco, tmp_path):
+    L.seed_everything(0, workers=True)
+    dm = DetectionDataModule(tiny_coco["train"], tiny_coco["val"], img_size=64, batch_size=4)
+    module = _HostPrepared(img_size=64, warmup_steps=2, multiscale=(32, 96))
+    record = _CompareLosses()
+    _trainer(tmp_path, 4, record).fit(module, dm)
+    assert len(record.pairs) == 4 and set(record.sides) <= {32, 64, 96}
+    assert len(set(record.sides)) > 1  # the multi-scale draw moved with the preparation
+    for new, old in record.pairs:
+        assert new == old
