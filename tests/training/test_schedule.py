@@ -41,3 +41,35 @@ def test_time_budget_plan_follows_the_pace_both_ways_under_the_configured_length
     _run(3600, clock, sched, cb)
     assert sched.total_steps == 100_000  # never beyond the configured length
     assert sched.state_dict()["max_steps"] == 100_000  # kept for a resumed run
+
+
+def test_training_rate_counts_images_over_the_window_without_validation(monkeypatch):
+    import pytest
+
+    from lunarnav_ml.errors import ConfigError
+    from lunarnav_ml.training import callbacks
+    from lunarnav_ml.training.callbacks import TrainingRate
+    now = [0.0]
+    monkeypatch.setattr(callbacks.time, "perf_counter", lambda: now[0])
+    logged = {}
+    module = SimpleNamespace(log=lambda name, value, **k: logged.__setitem__(name, value))
+    cb, trainer, batch = TrainingRate(window=2), SimpleNamespace(global_step=0), (torch.zeros(4),)
+
+    def step(t: float) -> None:
+        now[0] = t
+        trainer.global_step += 1
+        cb.on_train_batch_end(trainer, module, None, batch, 0)
+
+    step(100.0)  # the first batch (start-up) starts the first window
+    step(101.0)
+    assert logged == {}
+    cb.on_validation_start(trainer, module)
+    now[0] = 111.0  # ten seconds of validation, not counted
+    cb.on_validation_end(trainer, module)
+    step(112.0)  # two steps of 4 images in 2 s of training
+    assert logged["train/images_per_s"] == pytest.approx(4.0)
+    step(112.5)
+    step(113.0)  # 8 images in 1 s
+    assert logged["train/images_per_s"] == pytest.approx(8.0)
+    with pytest.raises(ConfigError, match="window must be >= 1"):
+        TrainingRate(window=0)
