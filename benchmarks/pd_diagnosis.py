@@ -13,6 +13,15 @@ it), prints one JSON line each:
    ignored or not; a second box on a crater already found; a rock or artifact; nothing).
 4. ``nms``, per ``--nms`` value: the same Pd after a stricter class-wise NMS over the detections
    (a post-processing choice made on validation).
+5. ``bins`` (with ``--bins``), per label attribute (box height, degradation, depth/diameter,
+   visible rim fraction, sun zenith, near-rim range): crater AP50 of each bin's craters alone
+   (the others ignored: a detection on one is neither hit nor false alarm), and the share of
+   them with a crater detection at IoU >= 0.5 at any score, which bounds the bin's recall.
+   Where crater AP50 is lost, whatever the threshold.
+6. ``montage`` (with ``--montage PNG``): crops around shallow (depth/diameter < 0.08) and fresh
+   (>= 0.16) craters of the same sizes, fully in view (box 14-40 px tall, >= 80 % of the rim
+   visible), each box green where a detection finds it at the operating threshold, red where
+   not: whether the labelled crater can be seen at all.
 
 With ``--transfer`` the split is a real one (``lunarnav import-real``, no crater geometry):
 only the NMS study runs, reported as the transfer report's recall@5 and AP50 per class.
@@ -24,17 +33,20 @@ only the NMS study runs, reported as the transfer report's recall@5 and AP50 per
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from torchvision.ops import batched_nms, box_convert, box_iou
 
-from lunarnav_ml.errors import LunarNavError
+from lunarnav_ml.errors import InputError, LunarNavError
 from lunarnav_ml.eval.coco_metrics import coco_ap
 from lunarnav_ml.eval.pd import (
     MatchResult,
@@ -80,7 +92,7 @@ def summary(gt: dict[str, Any], results: list[dict[str, Any]]) -> tuple[dict[str
 
 def crater_scores(gt: dict[str, Any], results: list[dict[str, Any]]) -> list[tuple]:
     """Per non-ignored crater: (in the Pd set, degradation, best score among its IoU >= 0.5
-    crater detections or 0, box width, box height)."""
+    crater detections or 0, box width, box height, annotation id)."""
     dets = by_image([r for r in results if r["category_id"] == CRATER])
     rows = []
     for img_id, anns in by_image(gt["annotations"]).items():
@@ -94,8 +106,8 @@ def crater_scores(gt: dict[str, Any], results: list[dict[str, Any]]) -> list[tup
             best = torch.where(ok, scores, torch.zeros_like(scores)).max(dim=1).values.tolist()
         else:
             best = [0.0] * len(anns)
-        rows += [(in_key_set(a), a.get("degradation", 0.0), s, a["bbox"][2], a["bbox"][3])
-                 for a, s in zip(anns, best)]
+        rows += [(in_key_set(a), a.get("degradation", 0.0), s, a["bbox"][2], a["bbox"][3],
+                  a["id"]) for a, s in zip(anns, best)]
     return rows
 
 
@@ -117,6 +129,93 @@ def localised(rows: list[tuple], thr: float) -> list[dict]:
                         "median_score_found": round(float(np.median(found)), 3) if len(found) else None,
                         "at_threshold": round(float((s >= thr).mean()), 3)})
     return out
+
+
+INF = float("inf")
+# label attribute -> (value of a crater annotation on its image, bin edges)
+BINS: dict[str, tuple[Callable[[dict, dict], float], tuple[float, ...]]] = {
+    "box_height_px": (lambda a, img: a["bbox"][3], (0, 8, 12, 20, 40, INF)),
+    "degradation": (lambda a, img: a["degradation"], (0, 1 / 3, 2 / 3, INF)),
+    "depth_to_diameter": (lambda a, img: a["depth_m"] / a["diameter_m"],
+                          (0, 0.08, 0.12, 0.16, INF)),
+    "visible_rim_fraction": (lambda a, img: a["visible_rim_fraction"], (0, 0.5, 0.8, INF)),
+    "sun_zenith_deg": (lambda a, img: img["sun_zenith_deg"], (0, 30, 50, 70, INF)),
+    "near_rim_range_m": (lambda a, img: a["near_rim_range_m"], (0, 10, 20, INF)),
+}
+
+
+def ap_bins(gt: dict[str, Any], results: list[dict[str, Any]], rows: list[tuple]) -> list[dict]:
+    """Crater AP50 and the localised share per bin of each :data:`BINS` attribute (an
+    attribute the labels lack is left out). ``rows``: :func:`crater_scores` of the same."""
+    images = {i["id"]: i for i in gt["images"]}
+    craters = [a for a in gt["annotations"] if a["category_id"] == CRATER and not is_ignored(a)]
+    localised_ids = {r[5] for r in rows if r[2] > 0}
+    crater_results = [r for r in results if r["category_id"] == CRATER]
+    out = []
+    for name, (value, edges) in BINS.items():
+        try:
+            values = {a["id"]: float(value(a, images[a["image_id"]])) for a in craters}
+        except (KeyError, ZeroDivisionError):
+            continue
+        bins = []
+        for lo, hi in itertools.pairwise(edges):
+            inside = {i for i, v in values.items() if lo <= v < hi}
+            if not inside:
+                continue
+            anns = [a if a["id"] in inside or is_ignored(a) else {**a, "ignore": True}
+                    for a in gt["annotations"] if a["category_id"] == CRATER]
+            ap = coco_ap({**gt, "annotations": anns}, crater_results)["per_class"]["crater"]
+            bins.append({"from": round(lo, 3), "to": None if hi == INF else round(hi, 3),
+                         "n": len(inside), "AP50": round(ap["AP50"], 4),
+                         "localised": round(len(inside & localised_ids) / len(inside), 3)})
+        out.append({"attribute": name, "bins": bins})
+    return out
+
+
+def montage(gt: dict[str, Any], results: list[dict[str, Any]], thr: float, root: Path,
+            path: Path, per_group: int = 12, seed: int = 0) -> Path:
+    """Write the shallow-against-fresh crater crops of step 6 (``root``: the images' folder)."""
+    images = {i["id"]: i for i in gt["images"]}
+    live = [a for a in gt["annotations"] if a["category_id"] == CRATER and not is_ignored(a)
+            and 14 <= a["bbox"][3] <= 40 and a.get("visible_rim_fraction", 1.0) >= 0.8
+            and "depth_m" in a and "diameter_m" in a]
+    dets = by_image([r for r in results if r["category_id"] == CRATER and r["score"] >= thr])
+    rng = np.random.default_rng(seed)
+    rows = []
+    for keep in (lambda r: r < 0.08, lambda r: r >= 0.16):
+        group = [a for a in live if keep(a["depth_m"] / a["diameter_m"])]
+        pick = rng.choice(len(group), min(per_group, len(group)), replace=False) if group else []
+        tiles = [_crop(group[k], images[group[k]["image_id"]], root, dets) for k in pick]
+        blank = np.zeros((160, 160, 3), np.uint8)
+        tiles = tiles + [blank] * (-len(tiles) % 6) if tiles else [blank] * 6
+        rows += [np.hstack(tiles[i:i + 6]) for i in range(0, len(tiles), 6)]
+        rows.append(np.full((6, 960, 3), 255, np.uint8))
+    return atomic.write_image(path, np.vstack(rows[:-1]))
+
+
+def _crop(ann: dict[str, Any], image: dict[str, Any], root: Path,
+          dets: dict[int, list[dict[str, Any]]]) -> np.ndarray:
+    """A 160 px tile around one crater: its box (green: found at the threshold), depth/diameter
+    and the sun's zenith angle."""
+    im = cv2.imread(str(root / image["file_name"]))
+    if im is None:
+        raise InputError(f"{root / image['file_name']}: cannot read the image")
+    x, y, w, h = ann["bbox"]
+    side = max(w, h) * 1.6 + 16
+    x0, y0 = int(max(0, x + w / 2 - side / 2)), int(max(0, y + h / 2 - side / 2))
+    x1 = int(min(im.shape[1], x + w / 2 + side / 2))
+    y1 = int(min(im.shape[0], y + h / 2 + side / 2))
+    tile = cv2.resize(im[y0:y1, x0:x1], (160, 160), interpolation=cv2.INTER_NEAREST)
+    d = dets.get(ann["image_id"], [])
+    found = bool(d) and bool((box_iou(xyxy([ann]), xyxy(d)) >= 0.5).any())
+    fx, fy = 160 / (x1 - x0), 160 / (y1 - y0)
+    cv2.rectangle(tile, (int((x - x0) * fx), int((y - y0) * fy)),
+                  (int((x + w - x0) * fx), int((y + h - y0) * fy)),
+                  (0, 200, 0) if found else (0, 0, 255), 1)
+    text = (f"d/D {ann['depth_m'] / ann['diameter_m']:.2f} "
+            f"sun {image.get('sun_zenith_deg', float('nan')):.0f}")
+    cv2.putText(tile, text, (2, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 0), 1)
+    return tile
 
 
 def plot_scores(rows: list[tuple], thr: float, path: Path) -> Path:
@@ -193,6 +292,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="PNG: score histograms of the localised craters")
     parser.add_argument("--transfer", action="store_true",
                         help="a real split: only the NMS study, as transfer metrics")
+    parser.add_argument("--bins", action="store_true",
+                        help="crater AP50 per bin of label attributes (a few minutes)")
+    parser.add_argument("--montage", type=Path, default=None,
+                        help="PNG: crops of shallow and fresh craters, found or not")
     parser.add_argument("--cache", type=Path, default=None,
                         help="detections JSON: read when present, else written")
     args = parser.parse_args(argv)
@@ -222,6 +325,16 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"false_alarms": false_alarms(gt, match)}))
     for iou in args.nms:
         print(json.dumps({"nms": iou, **summary(gt, stricter_nms(results, iou))[0]}))
+    if args.bins:
+        for row in ap_bins(gt, results, rows):
+            print(json.dumps({"bins": row}))
+    if args.montage is not None:
+        try:
+            out = montage(gt, results, head["threshold"], args.gt.parent, args.montage)
+        except LunarNavError as err:
+            print(f"pd_diagnosis: error: {err}", file=sys.stderr)
+            return 2
+        print(json.dumps({"montage": str(out)}))
     return 0
 
 

@@ -65,3 +65,52 @@ def test_main_with_cached_detections_and_plot(tmp_path, capsys):
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert code == 0 and (tmp_path / "scores.png").stat().st_size > 0
     assert lines[0]["summary"]["pd_all"] == 1.0 and lines[-1]["nms"] == 0.5
+
+
+def test_ap_bins_per_attribute_with_the_others_ignored():
+    gt = _gt()
+    gt["annotations"][1]["near_rim_range_m"] = 25.0  # in the open last bin
+    results = [_det([12, 101, 118, 17], 0.3), _det([200, 200, 40, 20], 0.9),
+               _det([250, 50, 20, 20], 0.5)]  # the last on nothing
+    rows = diag.crater_scores(gt, results)
+    out = {row["attribute"]: row["bins"] for row in diag.ap_bins(gt, results, rows)}
+    # the labels have no depth, visible rim fraction or sun angle: those are left out
+    assert set(out) == {"box_height_px", "degradation", "near_rim_range_m"}
+    height = {(b["from"], b["to"]): b for b in out["box_height_px"]}
+    # 12-20 px: crater 1 (found at 0.3 after the false alarm at 0.5; the 0.9 box is on
+    # crater 2, ignored in this bin); 20-40 px: crater 2, found first
+    assert height[(12, 20)]["AP50"] == 0.5 and height[(12, 20)]["n"] == 1
+    assert height[(20, 40)]["AP50"] == 1.0 and height[(20, 40)]["localised"] == 1.0
+    # both craters: a hit at 0.9, the false alarm, a hit at 0.3: COCO's 101-point AP
+    # (51 x 1 + 50 x 2/3) / 101
+    assert out["degradation"] == [{"from": 0, "to": 0.333, "n": 2, "AP50": 0.835,
+                                   "localised": 1.0}]
+    assert [(b["from"], b["to"], b["n"]) for b in out["near_rim_range_m"]] == [
+        (10, 20, 1), (20, None, 1)]  # an empty bin is left out
+
+
+def test_montage_marks_found_and_missed_craters(tmp_path, capsys):
+    import cv2
+    import numpy as np
+    gt = _gt()
+    gt["annotations"][0]["depth_m"] = 0.4   # D 8 m: depth/diameter 0.05, shallow
+    gt["annotations"][1]["depth_m"] = 0.4   # D 2 m: 0.2, fresh
+    for a in gt["annotations"]:
+        a.setdefault("diameter_m", 1.0)
+    results = [_det([12, 101, 118, 17], 0.3), _det([200, 200, 40, 20], 0.9)]
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((384, 384, 3), 128, np.uint8))
+    path = diag.montage(gt, results, 0.5, tmp_path, tmp_path / "m.png")
+    tile = cv2.imread(str(path))
+    assert tile.shape == (160 + 6 + 160, 960, 3)
+    red, green = np.array([0, 0, 255]), np.array([0, 200, 0])
+    assert (tile[:160, :160] == red).all(axis=2).any()       # shallow: missed at 0.5
+    assert not (tile[:160, :160] == green).all(axis=2).any()
+    assert (tile[166:, :160] == green).all(axis=2).any()     # fresh: found at 0.9
+    (tmp_path / "a.png").unlink()
+    gt_path, cache = tmp_path / "annotations.json", tmp_path / "dets.json"
+    gt_path.write_text(json.dumps(gt))
+    cache.write_text(json.dumps(results))
+    code = diag.main(["--gt", str(gt_path), "--checkpoint", "unused.pt", "--cache", str(cache),
+                      "--montage", str(tmp_path / "m2.png")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "a.png: cannot read" in err
