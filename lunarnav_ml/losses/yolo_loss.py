@@ -225,4 +225,3 @@ def padded_regions(gt: torch.Tensor, ign: torch.Tensor, batch: int) -> PaddedReg
     g, g_valid = per_image(gt[:, 0].long(), box_convert(gt[:, 2:6], "cxcywh", "xyxy"), batch)
     r, r_valid = per_image(ign[:, 0].long(), ign[:, 1:5], batch)
     return PaddedRegions(g, g_valid, r, r_valid)
-
