@@ -172,20 +172,22 @@ def ap_bins(gt: dict[str, Any], results: list[dict[str, Any]], rows: list[tuple]
     return out
 
 
-def montage(gt: dict[str, Any], results: list[dict[str, Any]], thr: float, root: Path,
-            path: Path, per_group: int = 12, seed: int = 0) -> Path:
-    """Write the shallow-against-fresh crater crops of step 6 (``root``: the images' folder)."""
+def montage(gt: dict[str, Any], rows: list[tuple], thr: float, root: Path, path: Path,
+            per_group: int = 12, seed: int = 0) -> Path:
+    """Write the shallow-against-fresh crater crops of step 6 (``rows``: :func:`crater_scores`;
+    ``root``: the images' folder)."""
     images = {i["id"]: i for i in gt["images"]}
+    best = {r[5]: r[2] for r in rows}  # best IoU >= 0.5 score of each crater
     live = [a for a in gt["annotations"] if a["category_id"] == CRATER and not is_ignored(a)
             and 14 <= a["bbox"][3] <= 40 and a.get("visible_rim_fraction", 1.0) >= 0.8
             and "depth_m" in a and "diameter_m" in a]
-    dets = by_image([r for r in results if r["category_id"] == CRATER and r["score"] >= thr])
     rng = np.random.default_rng(seed)
     rows = []
     for keep in (lambda r: r < 0.08, lambda r: r >= 0.16):
         group = [a for a in live if keep(a["depth_m"] / a["diameter_m"])]
         pick = rng.choice(len(group), min(per_group, len(group)), replace=False) if group else []
-        tiles = [_crop(group[k], images[group[k]["image_id"]], root, dets) for k in pick]
+        tiles = [_crop(group[k], images[group[k]["image_id"]], root, best[group[k]["id"]] >= thr)
+                 for k in pick]
         blank = np.zeros((160, 160, 3), np.uint8)
         tiles = tiles + [blank] * (-len(tiles) % 6) if tiles else [blank] * 6
         rows += [np.hstack(tiles[i:i + 6]) for i in range(0, len(tiles), 6)]
@@ -193,8 +195,7 @@ def montage(gt: dict[str, Any], results: list[dict[str, Any]], thr: float, root:
     return atomic.write_image(path, np.vstack(rows[:-1]))
 
 
-def _crop(ann: dict[str, Any], image: dict[str, Any], root: Path,
-          dets: dict[int, list[dict[str, Any]]]) -> np.ndarray:
+def _crop(ann: dict[str, Any], image: dict[str, Any], root: Path, found: bool) -> np.ndarray:
     """A 160 px tile around one crater: its box (green: found at the threshold), depth/diameter
     and the sun's zenith angle."""
     im = cv2.imread(str(root / image["file_name"]))
@@ -206,8 +207,6 @@ def _crop(ann: dict[str, Any], image: dict[str, Any], root: Path,
     x1 = int(min(im.shape[1], x + w / 2 + side / 2))
     y1 = int(min(im.shape[0], y + h / 2 + side / 2))
     tile = cv2.resize(im[y0:y1, x0:x1], (160, 160), interpolation=cv2.INTER_NEAREST)
-    d = dets.get(ann["image_id"], [])
-    found = bool(d) and bool((box_iou(xyxy([ann]), xyxy(d)) >= 0.5).any())
     fx, fy = 160 / (x1 - x0), 160 / (y1 - y0)
     cv2.rectangle(tile, (int((x - x0) * fx), int((y - y0) * fy)),
                   (int((x + w - x0) * fx), int((y + h - y0) * fy)),
@@ -330,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps({"bins": row}))
     if args.montage is not None:
         try:
-            out = montage(gt, results, head["threshold"], args.gt.parent, args.montage)
+            out = montage(gt, rows, head["threshold"], args.gt.parent, args.montage)
         except LunarNavError as err:
             print(f"pd_diagnosis: error: {err}", file=sys.stderr)
             return 2

@@ -99,7 +99,7 @@ def test_montage_marks_found_and_missed_craters(tmp_path, capsys):
         a.setdefault("diameter_m", 1.0)
     results = [_det([12, 101, 118, 17], 0.3), _det([200, 200, 40, 20], 0.9)]
     cv2.imwrite(str(tmp_path / "a.png"), np.full((384, 384, 3), 128, np.uint8))
-    path = diag.montage(gt, results, 0.5, tmp_path, tmp_path / "m.png")
+    path = diag.montage(gt, diag.crater_scores(gt, results), 0.5, tmp_path, tmp_path / "m.png")
     tile = cv2.imread(str(path))
     assert tile.shape == (160 + 6 + 160, 960, 3)
     red, green = np.array([0, 0, 255]), np.array([0, 200, 0])
