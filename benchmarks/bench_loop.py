@@ -45,10 +45,7 @@ def _to(batch: tuple, device: torch.device, channels_last: bool,
     if channels_last:
         x = x.contiguous(memory_format=torch.channels_last)
     if prepare is not None:
-        prepared = prepare(targets, len(images))
-        if device.type == "cuda":
-            prepared = prepared.pin_memory()
-        return x, prepared.to(device)
+        return x, prepare(targets, len(images)).to(device)
     return x, [{k: v.to(device, non_blocking=True) for k, v in t.items()} for t in targets]
 
 
@@ -80,12 +77,10 @@ def step_rate(module: DetectorModule, batches: list, steps: int, device: torch.d
     model = module.model
     prepare = None
     if host_targets:
-        side = batches[0][0].shape[-1]
-        grids = [(-(-side // s),) * 2 for s in model.strides]
-        anchors = model.anchors.detach().cpu()
+        side, pin = batches[0][0].shape[-1], device.type == "cuda"
 
         def prepare(targets: list, n: int) -> PreparedTargets:
-            return module.loss.prepare(targets, n, grids, anchors, model.strides, model.scale_xy)
+            return module.host_targets(targets, n, side, pin)
 
     ready = [_to(b, device, channels_last, prepare) for b in batches] if not copy else None
 

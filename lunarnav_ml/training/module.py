@@ -116,6 +116,8 @@ class DetectorModule(L.LightningModule):
         if self._channels_last and stage == "fit":
             self.model.to(memory_format=torch.channels_last)
             self.ema.to(memory_format=torch.channels_last)
+        # the host copy of the anchors for host_targets (k-means and init_from are done)
+        self._host_anchors = self.model.anchors.detach().cpu()
         backend = self.hparams.get("compile")
         if backend and stage == "fit":  # in place: the state_dict keeps its keys
             self.model.compile(**({"backend": backend} if isinstance(backend, str) else {}))
@@ -140,8 +142,7 @@ class DetectorModule(L.LightningModule):
         return self.model(x)
 
     def on_train_start(self) -> None:
-        # a host copy of the anchors for on_before_batch_transfer (they are fixed by now:
-        # k-means, init_from and a resumed checkpoint all come before this hook)
+        # again after a resumed checkpoint's buffers are loaded (after setup)
         self._host_anchors = self.model.anchors.detach().cpu()
 
     def on_before_batch_transfer(self, batch: Batch, dataloader_idx: int) -> Any:
@@ -153,13 +154,19 @@ class DetectorModule(L.LightningModule):
         images, targets, metas = batch
         side = self._train_side(images.shape[-1])
         targets = _scaled(targets, side / images.shape[-1])
+        return (images, self.host_targets(targets, len(images), side, pin=images.is_pinned()),
+                metas, side)
+
+    def host_targets(self, targets: list[dict[str, torch.Tensor]], batch_size: int, side: int,
+                     pin: bool = False) -> PreparedTargets:
+        """The loss's targets of a training batch at input ``side``, prepared on the host
+        (:meth:`YOLOLoss.prepare` with a host copy of the anchors), in pinned memory if
+        ``pin``."""
         model = self.model
         grids = [(-(-side // s),) * 2 for s in model.strides]  # each stride-2 step rounds up
-        prepared = self.loss.prepare(targets, len(images), grids, self._host_anchors,
+        prepared = self.loss.prepare(targets, batch_size, grids, self._host_anchors,
                                      model.strides, model.scale_xy)
-        if images.is_pinned():
-            prepared = prepared.pin_memory()
-        return images, prepared, metas, side
+        return prepared.pin_memory() if pin else prepared
 
     def _train_side(self, side: int) -> int:
         """The input side of a training batch: a multiple of 32 in ``multiscale``'s range,
