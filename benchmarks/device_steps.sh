@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A GPU training run's steps with and without session 39's changes (issue 4, BENCHMARKS.md
-# "Host-prepared targets, longer epochs and compile on a GPU"): render 1,000 default 384 px
+# "Targets prepared on the host; longer epochs tried"): render 1,000 default 384 px
 # frames on the machine's cores, then
 #   1. benchmarks/bench_loop.py: the step with the loss's targets prepared on the device (as
 #      before) and on the host (YOLOLoss.prepare, what a Lightning run does now);
