@@ -1,7 +1,8 @@
 # Sourced by benchmarks/device_layout.sh, device_loop.sh and device_steps.sh (the lent GPU
 # machine): puts SITE (the --target folder of packages its python3 lacks) and the working tree
-# on PYTHONPATH, defines `lunarnav`, and renders the 1,000 default 384 px training frames (seed 0) and the 48
-# validation frames (seed 1,000,003) of configs/small_relu_gpu.yaml's data/gpu/ on its cores.
+# on PYTHONPATH, defines `lunarnav`, and renders the 1,000 default 384 px training frames
+# (seed 0) and the 48 validation frames (seed 1,000,003) of configs/small_relu_gpu.yaml's
+# data/gpu/ on its cores.
 [ -n "${SITE:-}" ] && export PYTHONPATH="$SITE:${PYTHONPATH:-}"
 export PYTHONPATH="$PWD:${PYTHONPATH:-}"
 mkdir -p "$OUT"
