@@ -4,7 +4,8 @@ Box coordinates are COCO's (pixel i spans [i, i + 1)), i.e. OpenCV pixel coordin
 Ellipses are in OpenCV pixel coordinates ([cx, cy, a, b, angle_deg], a and b semi-axes, angle
 as ``cv2.fitEllipse``). Ignore rules: DESIGN.md, plus the extensions in :class:`LabelConfig`
 (crater diameter below ``crater_min_diameter_m``; rim-to-floor depth below ``min_depth_m``;
-less than ``min_visible_rim_fraction`` of the in-image rim visible in the depth buffer).
+less than ``min_visible_rim_fraction`` of the in-image rim visible in the depth buffer; the
+centre within ``overprint_radius_fraction`` of a later crater's radius).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ def crater_annotations(craters: list[Crater], ter: T.Terrain, cam: PinholeCam,
     if not cand:
         return []
     k = np.array([c[0] for c in cand])
+    over = overprinted(craters, ter.period, k, rules.overprint_radius_fraction)
     off = np.array([[c[1] * ter.period, c[2] * ter.period] for c in cand])
     ang = np.linspace(0.0, 2 * np.pi, N_RIM, endpoint=False)
     ctr = np.array([[craters[i].x, craters[i].y] for i in k]) + off
@@ -51,9 +53,37 @@ def crater_annotations(craters: list[Crater], ter: T.Terrain, cam: PinholeCam,
     uv, zc = uv.reshape(len(k), N_RIM, 2), zc.reshape(len(k), N_RIM)
     out = []
     for j, i in enumerate(k):
-        ann = _crater_ann(craters[i], ctr[j], z[j], uv[j], zc[j], cam, depth, rules)
+        ann = _crater_ann(craters[i], ctr[j], z[j], uv[j], zc[j], cam, depth, rules, over[j])
         if ann is not None:
             out.append(ann)
+    return out
+
+
+def overprinted(craters: list[Crater], period: float, index: np.ndarray,
+                fraction: float) -> np.ndarray:
+    """Whether each crater ``craters[index]`` had its floor excavated by a later crater.
+
+    Craters are stamped in list order and a stamp replaces the terrain inside its rim (the
+    earlier relief keeps a weight (r / R)^4 there, :func:`craters._stamp`), so a crater whose
+    centre lies within ``fraction`` of a later crater's radius R has lost its bowl: what is left
+    of it is at most an arc of rim, not the labelled circle. Distances are periodic (the DEM
+    tiles). ``fraction`` 0 turns the rule off.
+
+    Args:
+        index: (K,) crater indices (repeats allowed).
+
+    Returns:
+        (K,) bool.
+    """
+    out = np.zeros(len(index), bool)
+    if fraction <= 0 or len(craters) < 2:
+        return out
+    xy = np.array([[c.x, c.y] for c in craters])
+    reach = fraction * np.array([c.radius for c in craters])
+    for j, i in enumerate(index):
+        d = xy[i + 1:] - xy[i]
+        d = (d + 0.5 * period) % period - 0.5 * period
+        out[j] = bool((np.hypot(d[:, 0], d[:, 1]) < reach[i + 1:]).any())
     return out
 
 
@@ -117,12 +147,13 @@ def _candidates(craters: list[Crater], period: float, cam: PinholeCam, h_above: 
 
 
 def _crater_ann(c: Crater, ctr: np.ndarray, z: np.ndarray, uv: np.ndarray, zc: np.ndarray,
-                cam: PinholeCam, depth: np.ndarray, rules: LabelConfig
+                cam: PinholeCam, depth: np.ndarray, rules: LabelConfig, over: bool
                 ) -> dict[str, Any] | None:
     """One crater copy centred at ``ctr`` (2,) m, or None when it does not show.
 
     Args:
         z: (N_RIM,) rim heights, m. uv: (N_RIM, 2) projected rim, px. zc: (N_RIM,) camera z, m.
+        over: the crater was overprinted (:func:`overprinted`).
     """
     front = zc > 0.05
     if not front.any():
@@ -139,7 +170,7 @@ def _crater_ann(c: Crater, ctr: np.ndarray, z: np.ndarray, uv: np.ndarray, zc: n
     center = cam.to_cam(np.array([[ctr[0], ctr[1], float(z.mean())]]))[0]
     ell = cv2.fitEllipse(uv[front].astype(np.float32))
     reasons = _ignore_reasons(front.all(), cw * ch / max(full_area, 1e-9), ch, near, c, vis,
-                              rules)
+                              over, rules)
     a, b = 0.5 * ell[1][0], 0.5 * ell[1][1]
     return {
         "category_id": 1,
@@ -176,7 +207,7 @@ def _visible_fraction(uv: np.ndarray, zc: np.ndarray, depth: np.ndarray) -> floa
 
 
 def _ignore_reasons(all_front: bool, clip_frac: float, height_px: float, near_m: float,
-                    c: Crater, vis: float, r: LabelConfig) -> list[str]:
+                    c: Crater, vis: float, over: bool, r: LabelConfig) -> list[str]:
     """Names of the ignore rules a crater box trips (empty = a countable crater)."""
     reasons = []
     if not all_front:
@@ -193,6 +224,8 @@ def _ignore_reasons(all_front: bool, clip_frac: float, height_px: float, near_m:
         reasons.append("shallow")
     if vis < r.min_visible_rim_fraction:
         reasons.append("occluded")
+    if over:
+        reasons.append("overprinted")
     return reasons
 
 

@@ -9,7 +9,7 @@ from lunarnav_ml.synth import pipeline as P
 from lunarnav_ml.synth.camera import make_rig
 from lunarnav_ml.synth.config import SynthConfig
 
-from .conftest import one_crater_spec
+from .conftest import one_crater_spec, two_crater_spec
 
 
 def _expected_rim(spec, cfg, size):
@@ -83,7 +83,37 @@ def test_a_rim_grazing_the_image_edge_writes_no_zero_width_box():
     zc, z, depth = np.ones(a.size), np.zeros(a.size), np.full((64, 64), 100.0)
     for right_edge, written in ((0.0002, False), (0.4, True)):  # box right edge, px
         uv = np.stack([-20.5 + right_edge + 20 * (np.cos(a) - 1) + 20, 30 + 3 * np.sin(a)], 1)
-        ann = _crater_ann(crater, np.zeros(2), z, uv, zc, cam, depth, LabelConfig())
+        ann = _crater_ann(crater, np.zeros(2), z, uv, zc, cam, depth, LabelConfig(), False)
         assert (ann is not None) == written
         if ann is not None:
             assert ann["bbox"][2] > 0 and ann["ignore"] and "clipped" in ann["ignore_reasons"]
+
+
+def test_overprinted_means_the_centre_inside_a_later_crater():
+    from types import SimpleNamespace
+
+    from lunarnav_ml.synth.labels import overprinted
+
+    def crater(x, y, d):
+        return SimpleNamespace(x=x, y=y, radius=d / 2)
+
+    # 0: inside 1 (later); 1: inside 0 too, but 0 is earlier; 2: across the DEM's wrap-around
+    # from 3, at 0.9 of its radius; 3: the last, nothing overprints it.
+    craters = [crater(0.0, 0.0, 2.0), crater(1.0, 0.0, 6.0), crater(49.5, 0.0, 2.0),
+               crater(-48.6, 0.0, 4.0)]
+    got = overprinted(craters, 100.0, np.array([0, 1, 2, 3, 0]), 1.0)
+    assert got.tolist() == [True, False, True, False, True]
+    assert not overprinted(craters, 100.0, np.array([2]), 0.8).any()   # 0.9 R > 0.8 R
+    assert not overprinted(craters, 100.0, np.array([0, 2]), 0.0).any()  # the rule off
+
+
+def test_a_crater_excavated_by_a_later_one_is_ignored_as_overprinted(small_cfg):
+    for first_small, expect in ((True, True), (False, False)):
+        spec = two_crater_spec(first_small)
+        out = P.render_item(spec, small_cfg, 256, stereo=False)
+        small = [a for a in out.annotations if a["category_id"] == 1 and a["diameter_m"] == 4.0]
+        big = [a for a in out.annotations if a["category_id"] == 1 and a["diameter_m"] == 10.0]
+        assert len(small) == 1 and len(big) == 1
+        assert ("overprinted" in small[0]["ignore_reasons"]) == expect
+        assert small[0]["ignore"] == expect and small[0]["iscrowd"] == int(expect)
+        assert not big[0]["ignore"]
