@@ -177,9 +177,8 @@ class LabelConfig:
     crater_min_diameter_m: float = _f(1.0, 0.0, 1e4, "smaller craters are ignored, m")
     min_visible_rim_fraction: float = _f(0.3, 0.0, 1.0, "less visible rim -> ignored")
     min_depth_m: float = _f(0.08, 0.0, 100.0, "shallower craters are ignored, m")
-    overprint_radius_fraction: float = _f(
-        1.0, 0.0, 10.0, "a crater whose centre lies within this fraction of a later crater's "
-        "radius is ignored (its floor was excavated); 0 = off")
+    min_surviving_bowl_fraction: float = _f(
+        0.5, 0.0, 1.0, "less of the bowl's relief left by later craters' stamps -> ignored")
 
 
 SECTIONS = {

@@ -4,8 +4,8 @@ Box coordinates are COCO's (pixel i spans [i, i + 1)), i.e. OpenCV pixel coordin
 Ellipses are in OpenCV pixel coordinates ([cx, cy, a, b, angle_deg], a and b semi-axes, angle
 as ``cv2.fitEllipse``). Ignore rules: DESIGN.md, plus the extensions in :class:`LabelConfig`
 (crater diameter below ``crater_min_diameter_m``; rim-to-floor depth below ``min_depth_m``;
-less than ``min_visible_rim_fraction`` of the in-image rim visible in the depth buffer; the
-centre within ``overprint_radius_fraction`` of a later crater's radius).
+less than ``min_visible_rim_fraction`` of the in-image rim visible in the depth buffer; less
+than ``min_surviving_bowl_fraction`` of the bowl's relief left by later craters).
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ from lunarnav_ml.synth.craters import Crater
 from lunarnav_ml.synth.objects import SceneObject
 
 N_RIM = 180  # rim samples per crater (polygon error 1.5e-4 radii)
+BOWL_SAMPLES = 64  # points over a crater's bowl for :func:`surviving_bowl`
+GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
 
 def crater_annotations(craters: list[Crater], ter: T.Terrain, cam: PinholeCam,
@@ -40,7 +42,7 @@ def crater_annotations(craters: list[Crater], ter: T.Terrain, cam: PinholeCam,
     if not cand:
         return []
     k = np.array([c[0] for c in cand])
-    over = overprinted(craters, ter.period, k, rules.overprint_radius_fraction)
+    bowl = surviving_bowl(craters, ter.period, k)
     off = np.array([[c[1] * ter.period, c[2] * ter.period] for c in cand])
     ang = np.linspace(0.0, 2 * np.pi, N_RIM, endpoint=False)
     ctr = np.array([[craters[i].x, craters[i].y] for i in k]) + off
@@ -53,37 +55,42 @@ def crater_annotations(craters: list[Crater], ter: T.Terrain, cam: PinholeCam,
     uv, zc = uv.reshape(len(k), N_RIM, 2), zc.reshape(len(k), N_RIM)
     out = []
     for j, i in enumerate(k):
-        ann = _crater_ann(craters[i], ctr[j], z[j], uv[j], zc[j], cam, depth, rules, over[j])
+        ann = _crater_ann(craters[i], ctr[j], z[j], uv[j], zc[j], cam, depth, rules, bowl[j])
         if ann is not None:
             out.append(ann)
     return out
 
 
-def overprinted(craters: list[Crater], period: float, index: np.ndarray,
-                fraction: float) -> np.ndarray:
-    """Whether each crater ``craters[index]`` had its floor excavated by a later crater.
+def surviving_bowl(craters: list[Crater], period: float, index: np.ndarray) -> np.ndarray:
+    """Share of each crater's bowl relief that later craters' stamps left in the DEM.
 
-    Craters are stamped in list order and a stamp replaces the terrain inside its rim (the
-    earlier relief keeps a weight (r / R)^4 there, :func:`craters._stamp`), so a crater whose
-    centre lies within ``fraction`` of a later crater's radius R has lost its bowl: what is left
-    of it is at most an arc of rim, not the labelled circle. Distances are periodic (the DEM
-    tiles). ``fraction`` 0 turns the rule off.
+    Craters are stamped in list order, and inside a stamp's rim the earlier relief keeps the
+    weight (r / R)^4 (r from the stamp's centre, R its radius; :func:`craters._stamp`). The
+    share is the mean, over points spread evenly across the disk inside the crater's rim, of
+    the product of those weights of every later crater: 1 where no later crater reached, 0
+    for a bowl wholly excavated by a larger, later one. Distances are periodic (the DEM tiles).
 
     Args:
         index: (K,) crater indices (repeats allowed).
 
     Returns:
-        (K,) bool.
+        (K,) shares in [0, 1].
     """
-    out = np.zeros(len(index), bool)
-    if fraction <= 0 or len(craters) < 2:
-        return out
-    xy = np.array([[c.x, c.y] for c in craters])
-    reach = fraction * np.array([c.radius for c in craters])
-    for j, i in enumerate(index):
+    k = np.arange(BOWL_SAMPLES) + 0.5
+    disk = np.sqrt(k / BOWL_SAMPLES)[:, None] * np.stack(
+        [np.cos(k * GOLDEN_ANGLE), np.sin(k * GOLDEN_ANGLE)], axis=1)  # unit disk, even
+    xy = np.array([[c.x, c.y] for c in craters]).reshape(-1, 2)
+    rad = np.array([c.radius for c in craters])
+    out = np.ones(len(index))
+    for m, i in enumerate(index):
         d = xy[i + 1:] - xy[i]
         d = (d + 0.5 * period) % period - 0.5 * period
-        out[j] = bool((np.hypot(d[:, 0], d[:, 1]) < reach[i + 1:]).any())
+        later = np.flatnonzero(np.hypot(d[:, 0], d[:, 1]) < rad[i] + rad[i + 1:])
+        if later.size == 0:
+            continue
+        rel = rad[i] * disk[:, None, :] - d[later][None]  # (S, L, 2) from each later centre
+        r = np.hypot(rel[..., 0], rel[..., 1]) / rad[i + 1:][later]
+        out[m] = float(np.where(r < 1.0, r**4, 1.0).prod(axis=1).mean())
     return out
 
 
@@ -147,13 +154,13 @@ def _candidates(craters: list[Crater], period: float, cam: PinholeCam, h_above: 
 
 
 def _crater_ann(c: Crater, ctr: np.ndarray, z: np.ndarray, uv: np.ndarray, zc: np.ndarray,
-                cam: PinholeCam, depth: np.ndarray, rules: LabelConfig, over: bool
+                cam: PinholeCam, depth: np.ndarray, rules: LabelConfig, bowl: float
                 ) -> dict[str, Any] | None:
     """One crater copy centred at ``ctr`` (2,) m, or None when it does not show.
 
     Args:
         z: (N_RIM,) rim heights, m. uv: (N_RIM, 2) projected rim, px. zc: (N_RIM,) camera z, m.
-        over: the crater was overprinted (:func:`overprinted`).
+        bowl: the share of the bowl's relief later craters left (:func:`surviving_bowl`).
     """
     front = zc > 0.05
     if not front.any():
@@ -170,7 +177,7 @@ def _crater_ann(c: Crater, ctr: np.ndarray, z: np.ndarray, uv: np.ndarray, zc: n
     center = cam.to_cam(np.array([[ctr[0], ctr[1], float(z.mean())]]))[0]
     ell = cv2.fitEllipse(uv[front].astype(np.float32))
     reasons = _ignore_reasons(front.all(), cw * ch / max(full_area, 1e-9), ch, near, c, vis,
-                              over, rules)
+                              bowl, rules)
     a, b = 0.5 * ell[1][0], 0.5 * ell[1][1]
     return {
         "category_id": 1,
@@ -184,6 +191,7 @@ def _crater_ann(c: Crater, ctr: np.ndarray, z: np.ndarray, uv: np.ndarray, zc: n
         "ellipse": [round(ell[0][0], 3), round(ell[0][1], 3), round(a, 3), round(b, 3),
                     round(ell[2], 3)],
         "visible_rim_fraction": round(vis, 3),
+        "surviving_bowl_fraction": round(bowl, 3),
         "degradation": round(c.degradation, 3),
     }
 
@@ -207,7 +215,7 @@ def _visible_fraction(uv: np.ndarray, zc: np.ndarray, depth: np.ndarray) -> floa
 
 
 def _ignore_reasons(all_front: bool, clip_frac: float, height_px: float, near_m: float,
-                    c: Crater, vis: float, over: bool, r: LabelConfig) -> list[str]:
+                    c: Crater, vis: float, bowl: float, r: LabelConfig) -> list[str]:
     """Names of the ignore rules a crater box trips (empty = a countable crater)."""
     reasons = []
     if not all_front:
@@ -224,7 +232,7 @@ def _ignore_reasons(all_front: bool, clip_frac: float, height_px: float, near_m:
         reasons.append("shallow")
     if vis < r.min_visible_rim_fraction:
         reasons.append("occluded")
-    if over:
+    if bowl < r.min_surviving_bowl_fraction:
         reasons.append("overprinted")
     return reasons
 

@@ -83,28 +83,35 @@ def test_a_rim_grazing_the_image_edge_writes_no_zero_width_box():
     zc, z, depth = np.ones(a.size), np.zeros(a.size), np.full((64, 64), 100.0)
     for right_edge, written in ((0.0002, False), (0.4, True)):  # box right edge, px
         uv = np.stack([-20.5 + right_edge + 20 * (np.cos(a) - 1) + 20, 30 + 3 * np.sin(a)], 1)
-        ann = _crater_ann(crater, np.zeros(2), z, uv, zc, cam, depth, LabelConfig(), False)
+        ann = _crater_ann(crater, np.zeros(2), z, uv, zc, cam, depth, LabelConfig(), 1.0)
         assert (ann is not None) == written
         if ann is not None:
             assert ann["bbox"][2] > 0 and ann["ignore"] and "clipped" in ann["ignore_reasons"]
 
 
-def test_overprinted_means_the_centre_inside_a_later_crater():
+def test_surviving_bowl_is_the_relief_later_stamps_leave():
     from types import SimpleNamespace
 
-    from lunarnav_ml.synth.labels import overprinted
+    from lunarnav_ml.synth.labels import surviving_bowl
 
     def crater(x, y, d):
         return SimpleNamespace(x=x, y=y, radius=d / 2)
 
-    # 0: inside 1 (later); 1: inside 0 too, but 0 is earlier; 2: across the DEM's wrap-around
-    # from 3, at 0.9 of its radius; 3: the last, nothing overprints it.
-    craters = [crater(0.0, 0.0, 2.0), crater(1.0, 0.0, 6.0), crater(49.5, 0.0, 2.0),
-               crater(-48.6, 0.0, 4.0)]
-    got = overprinted(craters, 100.0, np.array([0, 1, 2, 3, 0]), 1.0)
-    assert got.tolist() == [True, False, True, False, True]
-    assert not overprinted(craters, 100.0, np.array([2]), 0.8).any()   # 0.9 R > 0.8 R
-    assert not overprinted(craters, 100.0, np.array([0, 2]), 0.0).any()  # the rule off
+    def share(craters, i):
+        return float(surviving_bowl(craters, 100.0, np.array([i]))[0])
+
+    # a later twin keeps (r / R)^4 of the bowl: its mean over the disk is 1/3
+    assert abs(share([crater(0, 0, 2), crater(0, 0, 2)], 0) - 1 / 3) < 0.01
+    # inside a larger, later crater: little left; the later crater itself keeps all of its bowl
+    inside = [crater(0, 0, 2), crater(1, 0, 6)]
+    assert share(inside, 0) < 0.1 and share(inside, 1) == 1.0
+    # a small later crater at the centre of a large one takes a small bite, not the crater
+    bite = share([crater(0, 0, 10), crater(0, 0, 2)], 0)
+    assert abs(bite - (1 - 0.04 * 2 / 3)) < 0.01
+    # distances wrap around the DEM's period
+    wrapped = share([crater(49.5, 0, 2), crater(-48.6, 0, 4)], 0)
+    assert 0.0 < wrapped < 1.0 and abs(wrapped - share([crater(0.5, 0, 2), crater(2.4, 0, 4)], 0)) < 1e-9
+    assert surviving_bowl(inside, 100.0, np.array([1, 0, 1])).tolist()[::2] == [1.0, 1.0]
 
 
 def test_a_crater_excavated_by_a_later_one_is_ignored_as_overprinted(small_cfg):
@@ -117,3 +124,6 @@ def test_a_crater_excavated_by_a_later_one_is_ignored_as_overprinted(small_cfg):
         assert ("overprinted" in small[0]["ignore_reasons"]) == expect
         assert small[0]["ignore"] == expect and small[0]["iscrowd"] == int(expect)
         assert not big[0]["ignore"]
+        assert small[0]["surviving_bowl_fraction"] < 0.5 if expect else (
+            small[0]["surviving_bowl_fraction"] == 1.0
+            and 0.5 < big[0]["surviving_bowl_fraction"] < 1.0)  # the small one bit the big
