@@ -24,6 +24,9 @@ RANGE_EDGES = tuple(float(r) for r in range(5, 31, 2))  # near-rim range bins, m
 DIAMETER_GROUPS = ((2.0, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 21.0))  # m
 ZENITH_EDGES = (0.0, 10.0, 30.0, 50.0, 70.0, 90.0)  # around the paper's 0/20/40/60/80 deg
 AZIMUTH_EDGES = (0.0, 30.0, 60.0, 90.0, 120.0, 150.0, 180.01)  # folded to 0-180 deg
+PREDATE_NOTE = ("Note: these synthetic crater labels predate the `overprinted` rule, so craters "
+                "that later impacts erased count as misses; render the set again with its seed to "
+                "compare with BENCHMARKS.md (docs/synth.md).")
 
 
 def detection_metrics(
@@ -49,7 +52,18 @@ def detection_metrics(
     }
     if match.gt and "near_rim_range_m" in match.gt[0]:
         out.update(_geometric_tables(gt, match))
+    if labels_predate_overprint_rule(gt):
+        out["labels_predate_overprint_rule"] = True
     return out
+
+
+def labels_predate_overprint_rule(gt: dict[str, Any]) -> bool:
+    """True for synthetic crater labels written before the ``overprinted`` ignore rule
+    (2026-11-26): they have ``visible_rim_fraction`` but no ``surviving_bowl_fraction``, so
+    craters that later impacts erased count as misses (docs/synth.md)."""
+    craters = [a for a in gt.get("annotations", []) if a.get("category_id") == 1]
+    return (any("visible_rim_fraction" in a for a in craters)
+            and not any("surviving_bowl_fraction" in a for a in craters))
 
 
 def _geometric_tables(gt: dict[str, Any], match: MatchResult) -> dict[str, Any]:
@@ -110,6 +124,8 @@ def render_markdown(metrics: dict[str, Any], title: str) -> str:
         lines.append(f"- craters D >= 5 m, near rim <= 20 m: Pd {_fmt(metrics['crater_pd_D5_within20m'])}"
                      f" (n = {metrics['n_craters_D5_within20m']})")
         lines += ["", "## Pd vs near-rim range", ""] + _range_table(metrics["pd_vs_range"])
+    if metrics.get("labels_predate_overprint_rule"):
+        lines += ["", PREDATE_NOTE]
     lines += _box_table(metrics)
     for key, label in (("pd_vs_sun_zenith", "sun zenith"), ("pd_vs_sun_azimuth", "sun azimuth")):
         if key in metrics:

@@ -119,6 +119,20 @@ def test_pd_bins_and_report():
     assert "| crater |" in text and "Pd vs near-rim range" in text
 
 
+def test_report_notes_synthetic_labels_from_before_the_overprint_rule():
+    results = [_det(1, 1, [10, 10, 20, 20], 0.9)]
+    gt = _gt()
+    assert "labels_predate_overprint_rule" not in detection_metrics(gt, results, 0.5)  # real
+    for a in gt["annotations"][:3]:
+        a["visible_rim_fraction"] = 1.0
+    metrics = detection_metrics(gt, results, 0.5)
+    assert metrics["labels_predate_overprint_rule"] is True
+    assert "predate the `overprinted` rule" in render_markdown(metrics, "t")
+    for a in gt["annotations"][:3]:
+        a["surviving_bowl_fraction"] = 1.0
+    assert "labels_predate_overprint_rule" not in detection_metrics(gt, results, 0.5)
+
+
 def test_bad_detections_raise_naming_the_item():
     gt = _gt()
     with pytest.raises(InputError, match="detection 0: unknown category_id 7"):
