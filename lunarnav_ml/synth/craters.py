@@ -19,6 +19,8 @@ import numpy as np
 
 R_MAX = 2.5  # profile support, crater radii (ejecta at 2.5 R is 6 % of the rim height)
 N_TABLE = 301  # profile samples over [0, R_MAX]
+BOWL_SAMPLES = 64  # points over a crater's bowl for :func:`surviving_bowl`
+GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
 
 @dataclass
@@ -119,6 +121,13 @@ def sample_morphology(rng: np.random.Generator, fresh_fraction: float, dd_fresh:
 
 
 @nb.njit(cache=True)
+def _kept(r2):
+    """Weight the earlier relief keeps inside a stamp's rim, at squared radius ``r2`` in units
+    of the stamp's radius: (r / R)^4 (scalars or arrays)."""
+    return r2 * r2
+
+
+@nb.njit(cache=True)
 def _stamp(h, x0, y0, res, xc, yc, radius, table, r_max):
     """Stamp one crater (periodic): interior replaced, exterior added."""
     n = h.shape[0]
@@ -144,13 +153,47 @@ def _stamp(h, x0, y0, res, xc, yc, radius, table, r_max):
                 f = q - k
                 p = (1 - f) * table[k] + f * table[k + 1]
                 if r < 1.0:
-                    w = r2 * r2
+                    w = _kept(r2)
                     h[ii, jj] = p + h_ref * (1.0 - w) + h[ii, jj] * w
                 else:
                     h[ii, jj] += p
             jj += 1
             if jj == n:
                 jj = 0
+
+
+def surviving_bowl(craters: list[Crater], period: float, index: np.ndarray) -> np.ndarray:
+    """Share of each crater's bowl relief that later craters' stamps left in the DEM.
+
+    Craters are stamped in list order, and inside a stamp's rim the earlier relief keeps the
+    weight :func:`_kept` (r from the stamp's centre, R its radius; :func:`_stamp`). The
+    share is the mean, over points spread evenly across the disk inside the crater's rim, of
+    the product of those weights of every later crater: 1 where no later crater reached, 0
+    for a bowl wholly excavated by a larger, later one. Distances are periodic (the DEM tiles).
+
+    Args:
+        index: (K,) crater indices (repeats allowed).
+
+    Returns:
+        (K,) shares in [0, 1].
+    """
+    k = np.arange(BOWL_SAMPLES) + 0.5
+    disk = np.sqrt(k / BOWL_SAMPLES)[:, None] * np.stack(
+        [np.cos(k * GOLDEN_ANGLE), np.sin(k * GOLDEN_ANGLE)], axis=1)  # unit disk, even
+    xy = np.array([[c.x, c.y] for c in craters]).reshape(-1, 2)
+    rad = np.array([c.radius for c in craters])
+    uniq, inverse = np.unique(np.asarray(index, int), return_inverse=True)  # periodic copies
+    out = np.ones(len(uniq))
+    for m, i in enumerate(uniq):
+        d = xy[i + 1:] - xy[i]
+        d = (d + 0.5 * period) % period - 0.5 * period
+        later = np.flatnonzero(np.hypot(d[:, 0], d[:, 1]) < rad[i] + rad[i + 1:])
+        if later.size == 0:
+            continue
+        rel = rad[i] * disk[:, None, :] - d[later][None]  # (S, L, 2) from each later centre
+        r2 = (rel[..., 0] ** 2 + rel[..., 1] ** 2) / rad[i + 1:][later] ** 2
+        out[m] = float(np.where(r2 < 1.0, _kept(r2), 1.0).prod(axis=1).mean())
+    return out[inverse]
 
 
 def stamp_craters(h: np.ndarray, x0: float, y0: float, res: float,

@@ -20,12 +20,10 @@ from lunarnav_ml.synth import raycast
 from lunarnav_ml.synth import terrain as T
 from lunarnav_ml.synth.camera import PinholeCam
 from lunarnav_ml.synth.config import LabelConfig
-from lunarnav_ml.synth.craters import Crater
+from lunarnav_ml.synth.craters import Crater, surviving_bowl
 from lunarnav_ml.synth.objects import SceneObject
 
 N_RIM = 180  # rim samples per crater (polygon error 1.5e-4 radii)
-BOWL_SAMPLES = 64  # points over a crater's bowl for :func:`surviving_bowl`
-GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
 
 def crater_annotations(craters: list[Crater], ter: T.Terrain, cam: PinholeCam,
@@ -58,39 +56,6 @@ def crater_annotations(craters: list[Crater], ter: T.Terrain, cam: PinholeCam,
         ann = _crater_ann(craters[i], ctr[j], z[j], uv[j], zc[j], cam, depth, rules, bowl[j])
         if ann is not None:
             out.append(ann)
-    return out
-
-
-def surviving_bowl(craters: list[Crater], period: float, index: np.ndarray) -> np.ndarray:
-    """Share of each crater's bowl relief that later craters' stamps left in the DEM.
-
-    Craters are stamped in list order, and inside a stamp's rim the earlier relief keeps the
-    weight (r / R)^4 (r from the stamp's centre, R its radius; :func:`craters._stamp`). The
-    share is the mean, over points spread evenly across the disk inside the crater's rim, of
-    the product of those weights of every later crater: 1 where no later crater reached, 0
-    for a bowl wholly excavated by a larger, later one. Distances are periodic (the DEM tiles).
-
-    Args:
-        index: (K,) crater indices (repeats allowed).
-
-    Returns:
-        (K,) shares in [0, 1].
-    """
-    k = np.arange(BOWL_SAMPLES) + 0.5
-    disk = np.sqrt(k / BOWL_SAMPLES)[:, None] * np.stack(
-        [np.cos(k * GOLDEN_ANGLE), np.sin(k * GOLDEN_ANGLE)], axis=1)  # unit disk, even
-    xy = np.array([[c.x, c.y] for c in craters]).reshape(-1, 2)
-    rad = np.array([c.radius for c in craters])
-    out = np.ones(len(index))
-    for m, i in enumerate(index):
-        d = xy[i + 1:] - xy[i]
-        d = (d + 0.5 * period) % period - 0.5 * period
-        later = np.flatnonzero(np.hypot(d[:, 0], d[:, 1]) < rad[i] + rad[i + 1:])
-        if later.size == 0:
-            continue
-        rel = rad[i] * disk[:, None, :] - d[later][None]  # (S, L, 2) from each later centre
-        r = np.hypot(rel[..., 0], rel[..., 1]) / rad[i + 1:][later]
-        out[m] = float(np.where(r < 1.0, r**4, 1.0).prod(axis=1).mean())
     return out
 
 
@@ -160,7 +125,7 @@ def _crater_ann(c: Crater, ctr: np.ndarray, z: np.ndarray, uv: np.ndarray, zc: n
 
     Args:
         z: (N_RIM,) rim heights, m. uv: (N_RIM, 2) projected rim, px. zc: (N_RIM,) camera z, m.
-        bowl: the share of the bowl's relief later craters left (:func:`surviving_bowl`).
+        bowl: the share of the bowl's relief later craters left (:func:`craters.surviving_bowl`).
     """
     front = zc > 0.05
     if not front.any():

@@ -92,7 +92,7 @@ def test_a_rim_grazing_the_image_edge_writes_no_zero_width_box():
 def test_surviving_bowl_is_the_relief_later_stamps_leave():
     from types import SimpleNamespace
 
-    from lunarnav_ml.synth.labels import surviving_bowl
+    from lunarnav_ml.synth.craters import surviving_bowl
 
     def crater(x, y, d):
         return SimpleNamespace(x=x, y=y, radius=d / 2)
