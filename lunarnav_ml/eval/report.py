@@ -10,6 +10,7 @@ import numpy as np
 
 from lunarnav_ml.eval.coco_metrics import coco_ap
 from lunarnav_ml.eval.pd import (
+    CRATER_ID,
     MatchResult,
     box_precision,
     in_key_set,
@@ -61,7 +62,7 @@ def labels_predate_overprint_rule(gt: dict[str, Any]) -> bool:
     """True for synthetic crater labels written before the ``overprinted`` ignore rule
     (2026-11-26): they have ``visible_rim_fraction`` but no ``surviving_bowl_fraction``, so
     craters that later impacts erased count as misses (docs/synth.md)."""
-    craters = [a for a in gt.get("annotations", []) if a.get("category_id") == 1]
+    craters = [a for a in gt.get("annotations", []) if a.get("category_id") == CRATER_ID]
     return (any("visible_rim_fraction" in a for a in craters)
             and not any("surviving_bowl_fraction" in a for a in craters))
 
