@@ -14,9 +14,9 @@ it), prints one JSON line each:
 4. ``nms``, per ``--nms`` value: the same Pd after a stricter class-wise NMS over the detections
    (a post-processing choice made on validation).
 5. ``bins`` (with ``--bins``), per label attribute (box height, degradation, depth/diameter,
-   visible rim fraction, surviving bowl fraction, sun zenith, near-rim range): crater AP50 of
-   each bin's craters alone (the others ignored: a detection on one is neither hit nor false
-   alarm), and the share of them with a crater detection at IoU >= 0.5 at any score, which
+   visible rim fraction, surviving bowl fraction, rim ellipse minor axis, sun zenith, near-rim
+   range): crater AP50 of each bin's craters alone (the others ignored: a detection on one is
+   neither hit nor false alarm), and the share of them with a crater detection at IoU >= 0.5 at any score, which
    bounds the bin's recall. Where crater AP50 is lost, whatever the threshold.
 6. ``montage`` (with ``--montage PNG``): crops around shallow (depth/diameter < 0.08) and fresh
    (>= 0.16) craters of the same sizes, fully in view (box 14-40 px tall, >= 80 % of the rim
@@ -141,6 +141,8 @@ BINS: dict[str, tuple[Callable[[dict, dict], float], tuple[float, ...]]] = {
     "visible_rim_fraction": (lambda a, img: a["visible_rim_fraction"], (0, 0.5, 0.8, INF)),
     "surviving_bowl_fraction": (lambda a, img: a["surviving_bowl_fraction"],
                                 (0, 0.5, 0.7, 0.9, 0.99, INF)),
+    "rim_minor_axis_px": (lambda a, img: 2 * min(a["ellipse"][2], a["ellipse"][3]),
+                          (0, 4, 6, 8, 12, 20, INF)),
     "sun_zenith_deg": (lambda a, img: img["sun_zenith_deg"], (0, 30, 50, 70, INF)),
     "near_rim_range_m": (lambda a, img: a["near_rim_range_m"], (0, 10, 20, INF)),
 }

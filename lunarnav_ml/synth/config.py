@@ -179,6 +179,8 @@ class LabelConfig:
     min_depth_m: float = _f(0.08, 0.0, 100.0, "shallower craters are ignored, m")
     min_surviving_bowl_fraction: float = _f(
         0.5, 0.0, 1.0, "less of the bowl's relief left by later craters' stamps -> ignored")
+    min_rim_minor_axis_px: float = _f(
+        6.0, 0.0, 1e4, "thinner projected rim ellipses (craters seen edge-on) are ignored, px")
 
 
 SECTIONS = {

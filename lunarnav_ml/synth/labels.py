@@ -141,9 +141,9 @@ def _crater_ann(c: Crater, ctr: np.ndarray, z: np.ndarray, uv: np.ndarray, zc: n
     vis = _visible_fraction(uv[front], zc[front], depth)
     center = cam.to_cam(np.array([[ctr[0], ctr[1], float(z.mean())]]))[0]
     ell = cv2.fitEllipse(uv[front].astype(np.float32))
-    reasons = _ignore_reasons(front.all(), cw * ch / max(full_area, 1e-9), ch, near, c, vis,
-                              bowl, rules)
     a, b = 0.5 * ell[1][0], 0.5 * ell[1][1]
+    reasons = _ignore_reasons(front.all(), cw * ch / max(full_area, 1e-9), ch, 2 * min(a, b),
+                              near, c, vis, bowl, rules)
     return {
         "category_id": 1,
         "bbox": [round(clip[0], 3), round(clip[1], 3), round(cw, 3), round(ch, 3)],
@@ -179,9 +179,14 @@ def _visible_fraction(uv: np.ndarray, zc: np.ndarray, depth: np.ndarray) -> floa
     return float(visible.mean())
 
 
-def _ignore_reasons(all_front: bool, clip_frac: float, height_px: float, near_m: float,
-                    c: Crater, vis: float, bowl: float, r: LabelConfig) -> list[str]:
-    """Names of the ignore rules a crater box trips (empty = a countable crater)."""
+def _ignore_reasons(all_front: bool, clip_frac: float, height_px: float, minor_px: float,
+                    near_m: float, c: Crater, vis: float, bowl: float, r: LabelConfig
+                    ) -> list[str]:
+    """Names of the ignore rules a crater box trips (empty = a countable crater).
+
+    Args:
+        height_px: the clipped box's height. minor_px: the rim ellipse's minor axis (2 b).
+    """
     reasons = []
     if not all_front:
         reasons.append("behind_camera")
@@ -199,6 +204,8 @@ def _ignore_reasons(all_front: bool, clip_frac: float, height_px: float, near_m:
         reasons.append("occluded")
     if bowl < r.min_surviving_bowl_fraction:
         reasons.append("overprinted")
+    if minor_px < r.min_rim_minor_axis_px and height_px >= r.min_box_height_px:
+        reasons.append("edge_on")  # a box tall enough only because the thin ellipse is tilted
     return reasons
 
 

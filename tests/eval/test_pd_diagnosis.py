@@ -70,17 +70,21 @@ def test_main_with_cached_detections_and_plot(tmp_path, capsys):
 def test_ap_bins_per_attribute_with_the_others_ignored():
     gt = _gt()
     gt["annotations"][1]["near_rim_range_m"] = 25.0  # in the open last bin
-    for ann, bowl in zip(gt["annotations"][:2], (0.6, 1.0)):
-        ann["surviving_bowl_fraction"] = bowl
+    for ann, bowl, ellipse in zip(gt["annotations"][:2], (0.6, 1.0),
+                                  ([70, 109, 59, 1.5, 3.0], [220, 210, 8, 20, 91.0])):
+        ann["surviving_bowl_fraction"], ann["ellipse"] = bowl, ellipse
     results = [_det([12, 101, 118, 17], 0.3), _det([200, 200, 40, 20], 0.9),
                _det([250, 50, 20, 20], 0.5)]  # the last on nothing
     rows = diag.crater_scores(gt, results)
     out = {row["attribute"]: row["bins"] for row in diag.ap_bins(gt, results, rows)}
     # the labels have no depth, visible rim fraction or sun angle: those are left out
     assert set(out) == {"box_height_px", "degradation", "near_rim_range_m",
-                        "surviving_bowl_fraction"}
+                        "surviving_bowl_fraction", "rim_minor_axis_px"}
     assert [(b["from"], b["to"], b["n"]) for b in out["surviving_bowl_fraction"]] == [
         (0.5, 0.7, 1), (0.99, None, 1)]
+    # the minor axis is twice the smaller semi-axis, whichever of the two is listed first
+    assert [(b["from"], b["to"], b["n"]) for b in out["rim_minor_axis_px"]] == [
+        (0, 4, 1), (12, 20, 1)]
     height = {(b["from"], b["to"]): b for b in out["box_height_px"]}
     # 12-20 px: crater 1 (found at 0.3 after the false alarm at 0.5; the 0.9 box is on
     # crater 2, ignored in this bin); 20-40 px: crater 2, found first

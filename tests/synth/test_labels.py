@@ -132,3 +132,24 @@ def test_a_crater_excavated_by_a_later_one_is_ignored_as_overprinted(small_cfg):
         else:  # stamped last, the small crater is whole and takes a bite out of the big one
             assert small[0]["surviving_bowl_fraction"] == 1.0
             assert 0.5 < big[0]["surviving_bowl_fraction"] < 1.0
+
+
+def test_a_tilted_sliver_is_ignored_as_edge_on(small_cfg):
+    """DESIGN.md's 6 px height measured across the rim ellipse: a crater seen as a thin sliver
+    counts no more when a camera roll tilts its box taller than 6 px."""
+    off = SynthConfig.from_dict({**small_cfg.to_dict(), "labels": {"min_rim_minor_axis_px": 0}})
+    cases = (  # (x of the 4 m crater, roll, config, expected reasons)
+        (12.0, 0.0, small_cfg, ["small"]),  # level: its box is the ellipse's 5.2 px height
+        (12.0, 30.0, small_cfg, ["edge_on"]),  # rolled: the same ellipse in a 22 px tall box
+        (12.0, 30.0, off, []),  # the rule off: DESIGN.md's box height alone
+        (10.0, 30.0, small_cfg, []),  # nearer, 7.5 px across: countable at any roll
+    )
+    for x, roll, cfg, reasons in cases:
+        out = P.render_item(one_crater_spec(diameter=4.0, x=x, y=0.0, roll=roll), cfg, 256,
+                            stereo=False)
+        ann = [a for a in out.annotations if a["category_id"] == 1 and a["diameter_m"] == 4.0]
+        assert len(ann) == 1
+        assert ann[0]["ignore_reasons"] == reasons, (x, roll)
+        assert ann[0]["ignore"] == bool(reasons)
+        if roll:
+            assert ann[0]["bbox"][3] > 20.0
