@@ -14,6 +14,7 @@ from lunarnav_ml.eval.pd import (
     MatchResult,
     box_precision,
     in_key_set,
+    is_ignored,
     match_craters,
     pd_by,
     subset,
@@ -28,6 +29,11 @@ AZIMUTH_EDGES = (0.0, 30.0, 60.0, 90.0, 120.0, 150.0, 180.01)  # folded to 0-180
 PREDATE_NOTE = ("Note: these synthetic crater labels predate the `overprinted` rule, so craters "
                 "that later impacts erased count as misses; render the set again with its seed to "
                 "compare with BENCHMARKS.md (docs/synth.md).")
+EDGE_ON_NOTE = ("Note: {n} countable crater labels here are seen edge-on (their rim ellipse is "
+                "under 6 px across in a box 6 px or taller): the labels predate the `edge_on` rule "
+                "or were rendered with it off, and such craters are almost never found; render the "
+                "set again with its seed to compare with BENCHMARKS.md (docs/synth.md).")
+EDGE_ON_PX = 6.0  # the default labels.min_rim_minor_axis_px (and DESIGN.md's box height)
 
 
 def detection_metrics(
@@ -55,6 +61,8 @@ def detection_metrics(
         out.update(_geometric_tables(gt, match))
     if labels_predate_overprint_rule(gt):
         out["labels_predate_overprint_rule"] = True
+    if n_edge_on := countable_edge_on(gt):
+        out["countable_edge_on_craters"] = n_edge_on
     return out
 
 
@@ -65,6 +73,15 @@ def labels_predate_overprint_rule(gt: dict[str, Any]) -> bool:
     craters = [a for a in gt.get("annotations", []) if a.get("category_id") == CRATER_ID]
     return (any("visible_rim_fraction" in a for a in craters)
             and not any("surviving_bowl_fraction" in a for a in craters))
+
+
+def countable_edge_on(gt: dict[str, Any]) -> int:
+    """How many countable synthetic crater labels the ``edge_on`` rule (2026-11-26) would
+    ignore: a rim ellipse under :data:`EDGE_ON_PX` across in a box at least that tall."""
+    return sum(1 for a in gt.get("annotations", [])
+               if a.get("category_id") == CRATER_ID and not is_ignored(a)
+               and "visible_rim_fraction" in a and len(a.get("ellipse") or ()) == 5
+               and 2 * min(a["ellipse"][2], a["ellipse"][3]) < EDGE_ON_PX <= a["bbox"][3])
 
 
 def _geometric_tables(gt: dict[str, Any], match: MatchResult) -> dict[str, Any]:
@@ -127,6 +144,8 @@ def render_markdown(metrics: dict[str, Any], title: str) -> str:
         lines += ["", "## Pd vs near-rim range", ""] + _range_table(metrics["pd_vs_range"])
     if metrics.get("labels_predate_overprint_rule"):
         lines += ["", PREDATE_NOTE]
+    if metrics.get("countable_edge_on_craters"):
+        lines += ["", EDGE_ON_NOTE.format(n=metrics["countable_edge_on_craters"])]
     lines += _box_table(metrics)
     for key, label in (("pd_vs_sun_zenith", "sun zenith"), ("pd_vs_sun_azimuth", "sun azimuth")):
         if key in metrics:

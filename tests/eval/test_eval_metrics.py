@@ -141,3 +141,18 @@ def test_bad_detections_raise_naming_the_item():
         coco_ap(gt, [_det(99, 1, [0, 0, 1, 1], 0.5)])
     with pytest.raises(InputError, match="finite"):
         coco_ap(gt, [_det(1, 1, [0, np.nan, 1, 1], 0.5)])
+
+
+def test_report_notes_countable_craters_seen_edge_on():
+    results = [_det(1, 1, [10, 10, 20, 20], 0.9)]
+    gt = _gt()
+    for a in gt["annotations"][:3]:
+        a["visible_rim_fraction"], a["surviving_bowl_fraction"] = 1.0, 1.0
+        a["ellipse"] = [20.0, 20.0, 10.0, 10.0, 0.0]
+    assert "countable_edge_on_craters" not in detection_metrics(gt, results, 0.5)
+    gt["annotations"][0]["ellipse"] = [20.0, 20.0, 2.9, 20.0, 70.0]  # 5.8 px across, tilted
+    metrics = detection_metrics(gt, results, 0.5)
+    assert metrics["countable_edge_on_craters"] == 1
+    assert "1 countable crater labels here are seen edge-on" in render_markdown(metrics, "t")
+    gt["annotations"][0]["ignore"] = True  # ignored (as the rule marks it): nothing to note
+    assert "countable_edge_on_craters" not in detection_metrics(gt, results, 0.5)
