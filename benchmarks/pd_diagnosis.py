@@ -16,8 +16,8 @@ it), prints one JSON line each:
 5. ``bins`` (with ``--bins``), per label attribute (box height, degradation, depth/diameter,
    visible rim fraction, surviving bowl fraction, rim ellipse minor axis, sun zenith, near-rim
    range): crater AP50 of each bin's craters alone (the others ignored: a detection on one is
-   neither hit nor false alarm), and the share of them with a crater detection at IoU >= 0.5 at any score, which
-   bounds the bin's recall. Where crater AP50 is lost, whatever the threshold.
+   neither hit nor false alarm), and the share of them with a crater detection at IoU >= 0.5
+   at any score, which bounds the bin's recall. Where crater AP50 is lost, whatever the threshold.
 6. ``montage`` (with ``--montage PNG``): crops around shallow (depth/diameter < 0.08) and fresh
    (>= 0.16) craters of the same sizes, fully in view (box 14-40 px tall, >= 80 % of the rim
    visible), each box green where a detection finds it at the operating threshold, red where

@@ -30,10 +30,9 @@ PREDATE_NOTE = ("Note: these synthetic crater labels predate the `overprinted` r
                 "that later impacts erased count as misses; render the set again with its seed to "
                 "compare with BENCHMARKS.md (docs/synth.md).")
 EDGE_ON_NOTE = ("Note: {n} countable crater labels here are seen edge-on (their rim ellipse is "
-                "under 6 px across in a box 6 px or taller): the labels predate the `edge_on` rule "
-                "or were rendered with it off, and such craters are almost never found; render the "
-                "set again with its seed to compare with BENCHMARKS.md (docs/synth.md).")
-EDGE_ON_PX = 6.0  # the default labels.min_rim_minor_axis_px (and DESIGN.md's box height)
+                "too thin for the default `edge_on` rule): the labels predate the rule or were "
+                "rendered with it off, and such craters are almost never found; render the set "
+                "again with its seed to compare with BENCHMARKS.md (docs/synth.md).")
 
 
 def detection_metrics(
@@ -76,12 +75,15 @@ def labels_predate_overprint_rule(gt: dict[str, Any]) -> bool:
 
 
 def countable_edge_on(gt: dict[str, Any]) -> int:
-    """How many countable synthetic crater labels the ``edge_on`` rule (2026-11-26) would
-    ignore: a rim ellipse under :data:`EDGE_ON_PX` across in a box at least that tall."""
+    """How many countable synthetic crater labels the default ``edge_on`` rule (2026-11-26,
+    :meth:`LabelConfig.edge_on`) would ignore."""
+    from lunarnav_ml.synth.config import LabelConfig
+
+    rule = LabelConfig()
     return sum(1 for a in gt.get("annotations", [])
                if a.get("category_id") == CRATER_ID and not is_ignored(a)
                and "visible_rim_fraction" in a and len(a.get("ellipse") or ()) == 5
-               and 2 * min(a["ellipse"][2], a["ellipse"][3]) < EDGE_ON_PX <= a["bbox"][3])
+               and rule.edge_on(2 * min(a["ellipse"][2], a["ellipse"][3]), a["bbox"][3]))
 
 
 def _geometric_tables(gt: dict[str, Any], match: MatchResult) -> dict[str, Any]:

@@ -182,6 +182,12 @@ class LabelConfig:
     min_rim_minor_axis_px: float = _f(
         6.0, 0.0, 1e4, "thinner projected rim ellipses (craters seen edge-on) are ignored, px")
 
+    def edge_on(self, minor_px: float, height_px: float) -> bool:
+        """The ``edge_on`` rule: a rim ellipse thinner than ``min_rim_minor_axis_px`` (its
+        minor axis, px) in a box tall enough for ``min_box_height_px``, i.e. tall only because
+        the thin ellipse is tilted."""
+        return minor_px < self.min_rim_minor_axis_px and height_px >= self.min_box_height_px
+
 
 SECTIONS = {
     "terrain": TerrainConfig, "craters": CraterConfig, "rocks": RockConfig,

@@ -204,8 +204,8 @@ def _ignore_reasons(all_front: bool, clip_frac: float, height_px: float, minor_p
         reasons.append("occluded")
     if bowl < r.min_surviving_bowl_fraction:
         reasons.append("overprinted")
-    if minor_px < r.min_rim_minor_axis_px and height_px >= r.min_box_height_px:
-        reasons.append("edge_on")  # a box tall enough only because the thin ellipse is tilted
+    if r.edge_on(minor_px, height_px):
+        reasons.append("edge_on")
     return reasons
 
 
