@@ -23,6 +23,13 @@ it), prints one JSON line each:
    visible), each box green where a detection finds it at the operating threshold, red where
    not: whether the labelled crater can be seen at all.
 
+7. ``parts`` (with ``--parts``; runs the model, about a minute for 300 renders at 384 px): per
+   group (the Pd set / the others, by degradation third), the best-scoring candidate before
+   NMS among those at IoU >= 0.5 with each crater: the median of its objectness, crater class
+   probability and IoU, its head (stride), how far each box edge lies from the label's (as a
+   share of the label box's width or height), and the correlation of objectness with IoU.
+   Whether a low score comes from the class or from the objectness, and which edge is loose.
+
 With ``--transfer`` the split is a real one (``lunarnav import-real``, no crater geometry):
 only the NMS study runs, reported as the transfer report's recall@5 and AP50 per class.
 
@@ -56,8 +63,9 @@ from lunarnav_ml.eval.pd import (
     pick_operating_threshold,
     subset,
 )
-from lunarnav_ml.eval.predict import predict_coco
-from lunarnav_ml.training.api import load_detector
+from lunarnav_ml.eval.predict import iter_batches, predict_coco
+from lunarnav_ml.models.decode import decode
+from lunarnav_ml.training.api import Detector, load_detector
 from lunarnav_ml.utils import atomic
 from lunarnav_ml.utils.jsonfile import read_json_file
 
@@ -128,6 +136,81 @@ def localised(rows: list[tuple], thr: float) -> list[dict]:
                         "any_score": round(float((s > 0).mean()), 3),
                         "median_score_found": round(float(np.median(found)), 3) if len(found) else None,
                         "at_threshold": round(float((s >= thr).mean()), 3)})
+    return out
+
+
+EDGES = ("left", "top", "right", "bottom")
+
+
+@torch.no_grad()
+def candidate_rows(detector: Detector, gt: dict[str, Any], root: Path) -> list[tuple]:
+    """Per non-ignored crater: (in the Pd set, degradation, then for the best-scoring
+    candidate before NMS at IoU >= 0.5, or NaN: objectness, crater probability, IoU, stride,
+    and the signed offsets of its left, top, right, bottom edges from the label box's, as
+    shares of the label box's width or height).
+
+    The images are letterboxed as :meth:`Detector.predict` does; the candidates are mapped back
+    to the original pixels before they are compared with the labels.
+    """
+    anns = by_image([a for a in gt["annotations"]
+                     if a["category_id"] == CRATER and not is_ignored(a)])
+    levels = None
+    rows = []
+    for records, images in iter_batches(gt, root, 8):
+        batch, infos = detector.preprocess(images)
+        raw = detector.model(batch)
+        table = decode(raw, detector.anchors, detector.strides, detector.scale_xy)
+        if levels is None:
+            levels = torch.cat([torch.full((r.shape[2] * r.shape[3] * detector.anchors.shape[1],),
+                                           s) for r, s in zip(raw, detector.strides)])
+        for record, image, info, cand in zip(records, images, infos, table):
+            labels = anns.get(record["id"], [])
+            if not labels:
+                continue
+            boxes = torch.from_numpy(info.to_original(
+                box_convert(cand[:, :4], "cxcywh", "xyxy").numpy(), image.shape[1],
+                image.shape[0])).double()
+            score = cand[:, 4] * cand[:, 5:].max(dim=1).values
+            truth = xyxy(labels)
+            iou = box_iou(truth, boxes)  # (G, N)
+            for a, t, row in zip(labels, truth, iou):
+                head = (in_key_set(a), a.get("degradation", 0.0))
+                ok = row >= 0.5
+                if not ok.any():
+                    rows.append(head + (np.nan,) * 8)
+                    continue
+                i = int(torch.where(ok, score.double(), -1.0).argmax())
+                wh = (t[2:] - t[:2]).repeat(2)
+                edges = ((boxes[i] - t) / wh).tolist()
+                rows.append(head + (float(cand[i, 4]), float(cand[i, 5 + CRATER - 1]),
+                                    float(row[i]), int(levels[i]), *edges))
+    return rows
+
+
+def parts(rows: list[tuple]) -> list[dict]:
+    """:func:`candidate_rows` summarised per group: Pd set / others, by degradation third."""
+    out = []
+    arr = np.array(rows, dtype=float).reshape(-1, 10)
+    for name, group in (("pd_set", True), ("others", False)):
+        for label, lo, hi in THIRDS:
+            sel = arr[(arr[:, 0] == group) & (arr[:, 1] >= lo) & (arr[:, 1] < hi)]
+            found = sel[~np.isnan(sel[:, 2])]
+            if len(found) < 2:
+                continue
+            med = np.median(found[:, 2:5], axis=0)
+            out.append({
+                "group": name, "degradation": label, "n": len(sel), "localised": len(found),
+                "median_objectness": round(float(med[0]), 3),
+                "median_crater_prob": round(float(med[1]), 3),
+                "median_iou": round(float(med[2]), 3),
+                "by_stride": {int(s): int(c) for s, c in zip(*np.unique(found[:, 5],
+                                                                        return_counts=True))},
+                "median_abs_edge_offset": {e: round(float(v), 3) for e, v in
+                                           zip(EDGES, np.median(np.abs(found[:, 6:]), axis=0))},
+                "median_edge_offset": {e: round(float(v), 3) for e, v in
+                                       zip(EDGES, np.median(found[:, 6:], axis=0))},
+                "corr_objectness_iou": round(float(np.corrcoef(found[:, 2], found[:, 4])[0, 1]), 3),
+            })
     return out
 
 
@@ -299,6 +382,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="crater AP50 per bin of label attributes (a few minutes)")
     parser.add_argument("--montage", type=Path, default=None,
                         help="PNG: crops of shallow and fresh craters, found or not")
+    parser.add_argument("--parts", action="store_true",
+                        help="objectness, class probability, IoU and edge offsets of the best "
+                             "candidates before NMS (runs the model)")
     parser.add_argument("--cache", type=Path, default=None,
                         help="detections JSON: read when present, else written")
     args = parser.parse_args(argv)
@@ -331,6 +417,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.bins:
         for row in ap_bins(gt, results, rows):
             print(json.dumps({"bins": row}))
+    if args.parts:
+        try:
+            detector = load_detector(args.checkpoint, img_size=args.img_size)
+            detector.model.eval()
+            for row in parts(candidate_rows(detector, gt, args.gt.parent)):
+                print(json.dumps({"parts": row}))
+        except LunarNavError as err:
+            print(f"pd_diagnosis: error: {err}", file=sys.stderr)
+            return 2
     if args.montage is not None:
         try:
             out = montage(gt, rows, head["threshold"], args.gt.parent, args.montage)

@@ -2,6 +2,10 @@ import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
+import pytest
+import torch
+
 _PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "pd_diagnosis.py"
 _spec = importlib.util.spec_from_file_location("pd_diagnosis", _PATH)
 diag = importlib.util.module_from_spec(_spec)
@@ -100,7 +104,6 @@ def test_ap_bins_per_attribute_with_the_others_ignored():
 
 def test_montage_marks_found_and_missed_craters(tmp_path, capsys):
     import cv2
-    import numpy as np
     gt = _gt()
     gt["annotations"][0]["depth_m"] = 0.4   # D 8 m: depth/diameter 0.05, shallow
     gt["annotations"][1]["depth_m"] = 0.4   # D 2 m: 0.2, fresh
@@ -123,3 +126,59 @@ def test_montage_marks_found_and_missed_craters(tmp_path, capsys):
                       "--montage", str(tmp_path / "m2.png")])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "a.png: cannot read" in err
+
+
+class _OneCellHead(torch.nn.Module):
+    """One stride-32 head, one anchor, three classes: every cell's raw fields are zero except
+    one cell's, which decode to a chosen box, objectness and crater probability."""
+
+    anchors = torch.tensor([[[64.0, 32.0]]])
+    strides = (32,)
+    scale_xy = (1.0,)
+
+    def __init__(self, cell: tuple[int, int], box_wh: tuple[float, float], obj: float,
+                 crater: float) -> None:
+        super().__init__()
+        self.cell, self.box_wh, self.obj, self.crater = cell, box_wh, obj, crater
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        raw = torch.full((x.shape[0], 8, x.shape[2] // 32, x.shape[3] // 32), -20.0)
+        raw[:, :2] = 0.0  # box centres at the cell centres
+        raw[:, 2:4] = 0.0  # anchor-sized boxes
+        gx, gy = self.cell
+        raw[:, 2, gy, gx] = float(np.log(self.box_wh[0] / 64.0))
+        raw[:, 3, gy, gx] = float(np.log(self.box_wh[1] / 32.0))
+        raw[:, 4, gy, gx] = float(torch.logit(torch.tensor(self.obj)))
+        raw[:, 5, gy, gx] = float(torch.logit(torch.tensor(self.crater)))
+        return [raw]
+
+
+def test_parts_of_the_best_candidate(tmp_path):
+    import cv2
+
+    from lunarnav_ml.training.api import Detector
+
+    gt = _gt()
+    gt["images"][0]["file_name"] = "a.png"
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((384, 384, 3), 128, np.uint8))
+    # cell (2, 3) of the 12 x 12 grid: centre (80, 112); a 120 x 20 box there spans
+    # x 20-140, y 102-122 against the Pd-set crater's label box x 10-130, y 100-118
+    model = _OneCellHead((2, 3), (120.0, 20.0), obj=0.8, crater=0.9)
+    detector = Detector(model, 384, ["crater", "rock", "artifact"])
+    rows = diag.candidate_rows(detector, gt, tmp_path)
+    key = [r for r in rows if r[0]]
+    assert len(rows) == 2 and len(key) == 1  # the ignored crater is left out
+    obj, prob, iou, stride, *edges = key[0][2:]
+    assert obj == pytest.approx(0.8, abs=1e-5) and prob == pytest.approx(0.9, abs=1e-5)
+    inter = (130 - 20) * (118 - 102)
+    assert iou == pytest.approx(inter / (120 * 18 + 120 * 20 - inter), abs=1e-4)
+    assert stride == 32
+    assert edges == pytest.approx([10 / 120, 2 / 18, 10 / 120, 4 / 18], abs=1e-4)
+    other = next(r for r in rows if not r[0])  # no candidate at IoU >= 0.5 with crater 2
+    assert all(np.isnan(v) for v in other[2:])
+    rows += [(True, 0.1, 0.4, 0.95, 0.5, 16, 0.0, 0.1, -0.1, 0.3)]
+    out = diag.parts(rows)
+    assert len(out) == 1 and out[0]["group"] == "pd_set" and out[0]["localised"] == 2
+    assert out[0]["by_stride"] == {16: 1, 32: 1}
+    assert out[0]["median_abs_edge_offset"]["bottom"] == pytest.approx((4 / 18 + 0.3) / 2,
+                                                                        abs=1e-3)
