@@ -13,5 +13,7 @@ class ConfigError(LunarNavError):
     """A bad configuration: an unknown key or an impossible value."""
 
 
-# What a command line reports in one line: ours, and a path that is missing or of the wrong kind.
-REPORTED_ERRORS = (LunarNavError, FileNotFoundError, NotADirectoryError, IsADirectoryError)
+# What a command line reports in one line: ours, a path that is missing or of the wrong kind,
+# and one that cannot be written (a read-only folder, a folder wanted where a file is).
+REPORTED_ERRORS = (LunarNavError, FileNotFoundError, NotADirectoryError, IsADirectoryError,
+                   PermissionError, FileExistsError)

@@ -73,3 +73,12 @@ def test_demo_bad_settings_are_one_line_and_leave_nothing(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "nope.yaml" in err[0] and "multiple of 32" in err[1]
     assert not out.exists()
+
+
+def test_an_output_path_that_is_a_file_is_one_line_exit_2(tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("not a folder")
+    code = main(["synth", str(afile), "--n", "1", "--size", "64", "--no-stereo"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "afile" in err
+    assert afile.read_text() == "not a folder"

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from lunarnav_ml.errors import ConfigError, LunarNavError
+from lunarnav_ml.errors import REPORTED_ERRORS, ConfigError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -128,6 +128,6 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser((__name__,)).parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (LunarNavError, FileNotFoundError) as err:
+    except REPORTED_ERRORS as err:
         print(f"lunarnav {args.command}: error: {err}", file=sys.stderr)
         return 2
