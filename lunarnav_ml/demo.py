@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import resource
 import time
 from dataclasses import asdict, dataclass
@@ -41,14 +42,26 @@ class DemoConfig:
     synth_config: str = str(DEMO_SYNTH_CONFIG)  # scene distribution of all three splits
 
     def validate(self) -> None:
-        """Reject impossible sizes with a message naming the field."""
+        """Reject impossible settings (before anything is rendered) with a message naming the
+        field."""
+        from lunarnav_ml.models.presets import PRESETS
+
         for name in ("n_train", "n_val", "n_test", "image_size", "batch_size"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"demo: {name} must be positive, got {getattr(self, name)}")
         if self.image_size % 32:
             raise ConfigError(f"demo: image_size must be a multiple of 32, got {self.image_size}")
-        if self.train_minutes <= 0:
-            raise ConfigError(f"demo: train_minutes must be positive, got {self.train_minutes}")
+        if self.n_overlays < 0:
+            raise ConfigError(f"demo: n_overlays must be >= 0, got {self.n_overlays}")
+        if not (math.isfinite(self.train_minutes) and self.train_minutes > 0):
+            raise ConfigError(f"demo: train_minutes must be a finite number > 0, "
+                              f"got {self.train_minutes}")
+        if not (math.isfinite(self.max_fa_per_image) and self.max_fa_per_image >= 0):
+            raise ConfigError(f"demo: max_fa_per_image must be a finite number >= 0, "
+                              f"got {self.max_fa_per_image}")
+        if self.preset not in PRESETS:
+            raise ConfigError(f"demo: unknown preset {self.preset!r} "
+                              f"(known: {', '.join(PRESETS)})")
 
 
 def _split_seed(seed: int, split: int) -> int:
@@ -101,6 +114,7 @@ def render_splits(cfg: DemoConfig, data_dir: Path, progress: bool) -> dict[str, 
 def run_demo(cfg: DemoConfig, out_dir: Path, progress: bool = True) -> dict[str, Any]:
     """Run the whole demo; the output folder appears complete or not at all."""
     cfg.validate()
+    atomic.check_destination(out_dir, folder=True)  # an --out in the way, found before rendering
     with atomic.atomic_dir(out_dir) as work:
         summary = _run_in(cfg, work, progress)
     print(f"[demo] wrote {out_dir}", flush=True)
@@ -151,14 +165,19 @@ def _run_in(cfg: DemoConfig, work: Path, progress: bool) -> dict[str, Any]:
 
 def write_overlays(gt: dict[str, Any], results: list[dict[str, Any]], threshold: float,
                    root: Path, out: Path, n: int) -> None:
-    """Overlay ground truth and thresholded detections on the first ``n`` images."""
+    """Overlay ground truth and thresholded detections on the first ``n`` images.
+
+    Raises:
+        InputError: an image file is missing or unreadable (naming it).
+    """
     import cv2
 
     from lunarnav_ml.eval.plots import draw_overlay
+    from lunarnav_ml.utils.images import read_rgb
 
     names = {c["id"]: c["name"] for c in gt["categories"]}
     for record in gt["images"][:n]:
-        image = cv2.imread(str(root / record["file_name"]), cv2.IMREAD_COLOR)
+        image = cv2.cvtColor(read_rgb(root / record["file_name"]), cv2.COLOR_RGB2BGR)
         anns = [a for a in gt["annotations"] if a["image_id"] == record["id"]]
         dets = [d for d in results if d["image_id"] == record["id"] and d["score"] >= threshold]
         atomic.write_image(out / f"{Path(record['file_name']).stem}.png",

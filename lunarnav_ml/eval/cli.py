@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 from typing import Any
 
-from lunarnav_ml.errors import InputError
+from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.eval.predict import read_coco_results
 from lunarnav_ml.eval.tta import TTAConfig, TTAPredictor, add_tta_arguments, tta_config
 
@@ -147,7 +148,22 @@ def run_transfer(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_settings(args: argparse.Namespace) -> None:
+    """Reject impossible numeric options before any model runs; ``ConfigError`` naming the
+    option."""
+    if args.threshold is not None and not 0.0 <= args.threshold <= 1.0:  # NaN fails both
+        raise ConfigError(f"--threshold: must be a score in [0, 1], got {args.threshold}")
+    if not (math.isfinite(args.max_fa) and args.max_fa >= 0):
+        raise ConfigError(f"--max-fa: must be a finite number >= 0, got {args.max_fa}")
+    if args.overlays < 0:
+        raise ConfigError(f"--overlays: must be >= 0, got {args.overlays}")
+
+
 def _dispatch(args: argparse.Namespace) -> int:
+    from lunarnav_ml.utils.atomic import check_destination
+
+    check_settings(args)
+    check_destination(args.out, folder=True)  # an --out in the way is found before any work
     if args.task == "transfer":
         return run_transfer(args)
     if args.task == "geometry":

@@ -65,11 +65,11 @@ def predict_coco(
 def check_coco_results(results: Any, origin: str) -> list[dict[str, Any]]:
     """COCO results as the evaluations read them: a list of objects, each with an integer
     ``image_id`` and ``category_id``, a ``bbox`` of 4 finite numbers [x, y, w, h] with w, h >= 0
-    and a finite ``score`` (1 when absent); ``InputError`` naming ``origin``, the entry and the
-    field otherwise.
+    and a finite ``score`` (1 when absent: a missing score is filled in as 1.0); ``InputError``
+    naming ``origin``, the entry and the field otherwise.
 
     Returns:
-        ``results``, unchanged.
+        ``results``, the same list, with ``"score": 1.0`` set on the entries that had none.
     """
     if not isinstance(results, list):
         raise InputError(f"{origin}: expected a list of COCO results, got {type(results).__name__}")
@@ -90,6 +90,7 @@ def check_coco_results(results: Any, origin: str) -> list[dict[str, Any]]:
         score = det.get("score", 1.0)
         if isinstance(score, bool) or not isinstance(score, (int, float)) or not np.isfinite(score):
             raise InputError(f"{where}: score must be a finite number, got {score!r}")
+        det.setdefault("score", 1.0)
     return results
 
 

@@ -47,6 +47,11 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.n is not None and args.n < 0:
         raise InputError(f"--n: must be >= 0, got {args.n}")
+    from lunarnav_ml.utils.atomic import check_destination, check_image_destination
+
+    check_destination(args.out, folder=True)  # bad paths found now, not after rendering
+    if args.gallery is not None:
+        check_image_destination(args.gallery)
     cfg = SynthConfig.from_yaml(args.config) if args.config else SynthConfig()
     ann = generate_dataset(args.out, n_images=args.n, seed=args.seed, config=cfg,
                            image_size=args.size, protocol=args.protocol,

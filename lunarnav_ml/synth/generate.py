@@ -26,6 +26,7 @@ from lunarnav_ml.synth.config import SynthConfig
 from lunarnav_ml.synth.pipeline import Rendered, TerrainCache, render_item
 from lunarnav_ml.synth.scene import SceneSpec, sample_scene
 from lunarnav_ml.utils import atomic
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 CATEGORIES = [{"id": 1, "name": "crater"}, {"id": 2, "name": "rock"},
               {"id": 3, "name": "artifact"}]
@@ -199,10 +200,7 @@ def _write_manifest(root: Path, seed: int, cfg: SynthConfig, size: int, protocol
                 "stereo": stereo, "lidar": lidar, "config": cfg.to_dict()}
     path = root / "synth_manifest.json"
     if path.exists():
-        try:
-            old = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise InputError(f"{path}: corrupt manifest ({err})") from None
+        old = read_json_file(path, "synth manifest", expect=dict)
         if old != json.loads(json.dumps(manifest)):
             diff = sorted(k for k in manifest if old.get(k) != json.loads(json.dumps(manifest[k])))
             raise InputError(f"{path}: {root} holds a run with other settings ({', '.join(diff)});"
@@ -250,7 +248,7 @@ def merge_annotations(root: str | Path, total: int | None = None) -> Path:
         manifest = root / "synth_manifest.json"
         if not manifest.exists():
             raise InputError(f"{manifest}: not a synth dataset folder")
-        total = int(json.loads(manifest.read_text())["n_items"])
+        total = _manifest_items(manifest)
     missing = [i for i in range(total) if not (root / "items" / f"{i:06d}.json").exists()]
     if missing:
         raise InputError(f"{root}: {len(missing)} of {total} items are not rendered yet "
@@ -259,14 +257,28 @@ def merge_annotations(root: str | Path, total: int | None = None) -> Path:
                              indent=None)
 
 
+def _manifest_items(path: Path) -> int:
+    """``n_items`` of a synth manifest; ``InputError`` naming the file when it is corrupt."""
+    manifest = read_json_file(path, "synth manifest", expect=dict)
+    n = manifest.get("n_items")
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise InputError(f"{path}: corrupt manifest: n_items must be an integer >= 0, got {n!r}")
+    return n
+
+
 def _coco(root: Path, indices: list[int]) -> dict[str, Any]:
     images, anns = [], []
     for i in indices:
         path = root / "items" / f"{i:06d}.json"
         try:
             rec = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
             raise InputError(f"{path}: corrupt item record ({err}); delete it to re-render") from None
+        if (not isinstance(rec, dict) or not isinstance(rec.get("image"), dict)
+                or "id" not in rec["image"] or not isinstance(rec.get("annotations"), list)
+                or not all(isinstance(a, dict) for a in rec["annotations"])):
+            raise InputError(f"{path}: corrupt item record (needs an 'image' object with an 'id' "
+                             "and an 'annotations' list of objects); delete it to re-render")
         images.append(rec["image"])
         for a in rec["annotations"]:
             anns.append({"id": len(anns) + 1, "image_id": rec["image"]["id"], **a})

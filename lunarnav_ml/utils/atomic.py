@@ -16,8 +16,30 @@ from typing import Any
 
 import numpy as np
 
+from lunarnav_ml.errors import InputError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
+
+
+def check_destination(path: str | os.PathLike, folder: bool = False) -> Path:
+    """Check that ``path`` can become a file (or, with ``folder``, a folder) before any work
+    is done: it is not an existing entry of the other kind and no folder above it is a file.
+
+    Raises:
+        InputError: naming ``path`` and what is in the way.
+    """
+    path = Path(path)
+    if folder and path.exists() and not path.is_dir():
+        raise InputError(f"{path}: output folder is an existing file; give a folder path")
+    if not folder and path.is_dir():
+        raise InputError(f"{path}: output file is an existing folder; give a file path")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(f"{path}: cannot write under {parent}, which is a file")
+            break
+    return path
 
 
 @contextlib.contextmanager
@@ -29,7 +51,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         suffix: suffix of the temporary file (defaults to the destination's, so that writers
             that pick a format by extension, such as OpenCV, still work).
     """
-    path = Path(path)
+    path = check_destination(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(
         prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix,
@@ -89,12 +111,30 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     Args:
         image: HxW (gray) or HxWx3 (BGR) array, uint8 or uint16.
     """
+    path = check_image_destination(path)
     import cv2
 
-    path = Path(path)
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), image):
-            raise OSError(f"{path}: OpenCV could not encode the image")
+        try:
+            ok = cv2.imwrite(str(tmp), image)
+        except cv2.error as err:  # OpenCV raises for some failures instead of returning False
+            reason = str(err).strip().splitlines()[-1].strip()
+            raise InputError(f"{path}: OpenCV could not write the image ({reason})") from None
+        if not ok:
+            raise InputError(f"{path}: OpenCV could not write the image")
+    return path
+
+
+def check_image_destination(path: str | os.PathLike) -> Path:
+    """Check, before any work, that an image can be written to ``path``: OpenCV has a writer
+    for its suffix and it is not a folder (:func:`check_destination`); ``InputError`` naming
+    ``path`` otherwise."""
+    import cv2
+
+    path = check_destination(path)
+    if not cv2.haveImageWriter(str(path)):
+        raise InputError(f"{path}: cannot write an image with suffix {path.suffix or '(none)'!r}"
+                         " (use .png or .jpg)")
     return path
 
 
@@ -111,8 +151,12 @@ def write_figure(path: str | os.PathLike, fig: Any, dpi: int = 110) -> Path:
 
 @contextlib.contextmanager
 def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
-    """Build a folder under a temporary name beside ``path``; on success replace ``path``."""
-    path = Path(path)
+    """Build a folder under a temporary name beside ``path``; on success replace ``path``.
+
+    ``InputError`` naming ``path``, before anything is built, when it is an existing file or
+    lies under one (:func:`check_destination`).
+    """
+    path = check_destination(path, folder=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:

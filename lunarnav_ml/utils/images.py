@@ -26,17 +26,25 @@ def read_rgb(path: str | Path) -> np.ndarray:
 def read_disparity(root: str | Path, image: dict) -> np.ndarray:
     """The rendered disparity (float64, px; 0 where nothing was hit) of a dataset image record.
 
+    Non-finite pixels (invalid ones) are kept as they are; a map without a single finite
+    value is rejected.
+
     Raises:
-        InputError: the record has no ``disparity_file``, or the file is missing or unreadable.
+        InputError: the record has no ``disparity_file``, or the file is missing, unreadable,
+            not numeric or holds no finite value.
     """
     rel = image.get("disparity_file")
     if not rel:
         raise InputError(f"images[{image.get('id')}]: no disparity_file (render with stereo)")
     path = Path(root) / rel
     try:
-        return np.load(path).astype(np.float64)
-    except (OSError, ValueError, EOFError) as err:
+        disp = np.load(path).astype(np.float64)
+    except (OSError, ValueError, EOFError, TypeError) as err:
         raise InputError(f"{path}: cannot read disparity ({err})") from None
+    if not np.isfinite(disp).any():
+        raise InputError(f"{path}: disparity has no finite value (all {disp.size} pixels are "
+                         "NaN or infinite)")
+    return disp
 
 
 def caption_tile(image: np.ndarray, side: int, caption: str) -> np.ndarray:
