@@ -106,7 +106,7 @@ def baseline_report(
     else:
         scfg = stereo_config or StereoConfig()
         run = lambda img, crs, rng: _run_stereo(
-            ann_path.parent, img, rng, scfg, disparity, noise_px)
+            ann_path, img, rng, scfg, disparity, noise_px)
     records, timings, false_alarms = [], [], 0
     craters = {img["id"]: with_protocol_target(img, craters.get(img["id"], []))
                for img in images}
@@ -187,37 +187,48 @@ def _run_lidar(
 
 
 def _run_stereo(
-    root: Path, img: dict, rng: np.random.Generator, cfg: StereoConfig, source: str,
+    ann_path: Path, img: dict, rng: np.random.Generator, cfg: StereoConfig, source: str,
     noise_px: float,
 ) -> tuple[list[np.ndarray], float]:
-    disp = load_disparity(root, img, source, noise_px, rng)
+    disp = load_disparity(ann_path.parent, img, source, noise_px, rng, ann_path=ann_path)
     t0 = time.perf_counter()
     dets = detect_craters_stereo(disp, img["camera"], config=cfg)
     return [d.center_m for d in dets], time.perf_counter() - t0
 
 
 def load_disparity(
-    root: Path, img: dict, source: str, noise_px: float, rng: np.random.Generator
+    root: Path, img: dict, source: str, noise_px: float, rng: np.random.Generator,
+    ann_path: Path | None = None,
 ) -> np.ndarray:
     """The stereo detector's input for one image (NaN invalid).
 
     ``"sgbm"``: ``lunarnav_ml.geometry.stereo.compute_disparity`` on the rendered pair;
     ``"truth-noise"``: the rendered disparity plus N(0, noise_px), 0 (sky) -> NaN.
+    ``ann_path``: the annotation file of ``img``, named in errors.
 
     Shape:
         -> (H, W) px.
+
+    Raises:
+        InputError: naming the annotation file, the image and the file that cannot be read.
     """
     if source == "sgbm":
         import cv2
 
         from lunarnav_ml.geometry.stereo import compute_disparity
 
+        where = f"images[{img['id']}]" if ann_path is None else f"{ann_path}: image id {img['id']}"
         if "right_file" not in img:
-            raise InputError(f"images[{img['id']}]: no right_file for SGBM (render with stereo)")
-        left = cv2.imread(str(root / img["file_name"]), cv2.IMREAD_GRAYSCALE)
-        right = cv2.imread(str(root / img["right_file"]), cv2.IMREAD_GRAYSCALE)
-        if left is None or right is None:
-            raise InputError(f"images[{img['id']}]: cannot read {img['file_name']} / right image")
+            raise InputError(f"{where}: no right_file for SGBM (render with stereo)")
+        pair = []
+        for key in ("file_name", "right_file"):
+            path = root / str(img[key])
+            gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+            if gray is None:
+                raise InputError(f"{where}: cannot read its {key} {path} (missing, corrupt or "
+                                 f"not an image)")
+            pair.append(gray)
+        left, right = pair
         max_d = img["camera"]["fx"] * img["camera"]["baseline_m"] / 1.0  # nearest ~1 m
         return compute_disparity(left, right, num_disparities=int(max_d)).disparity
     disp = read_disparity(root, img)

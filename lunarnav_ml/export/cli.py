@@ -5,8 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 from lunarnav_ml.errors import REPORTED_ERRORS, ConfigError
+
+# A camera frame side bench will synthesize (a 16k x 16k RGB frame is 768 MB).
+MAX_FRAME_SIZE = 16384
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -39,22 +43,36 @@ def _add_export(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    """Export, then quantize when asked; prints the written paths."""
+    """Export, then quantize when asked; prints the written paths.
+
+    The settings, the output paths and the calibration images are checked before anything is
+    exported; with ``--int8-out`` the fp32 file appears only once the int8 file is written.
+    """
     from lunarnav_ml.export.onnx_export import export_onnx
 
     if args.int8_out is not None and args.calib is None:
         raise ConfigError("--int8-out needs --calib (a folder of synthetic calibration images)")
     if args.n_calib < 1:
         raise ConfigError(f"--n-calib must be positive, got {args.n_calib}")
-    out = export_onnx(args.checkpoint, args.out, opset=args.opset, nms=args.nms,
-                      dynamic=not args.static, img_size=args.img_size)
-    print(f"wrote {out}")
-    if args.int8_out is not None:
-        from lunarnav_ml.export.quantize import load_calibration_images, quantize_int8
+    from lunarnav_ml.utils.atomic import atomic_path, check_destination
 
-        images = load_calibration_images(args.calib, args.n_calib)
-        q = quantize_int8(out, args.int8_out, images, method=args.calib_method)
-        print(f"wrote {q} (int8, {len(images)} calibration images)")
+    check_destination(args.out)  # a folder or a file in the way, found before the export
+    kw = {"opset": args.opset, "nms": args.nms, "dynamic": not args.static,
+          "img_size": args.img_size}
+    if args.int8_out is None:
+        print(f"wrote {export_onnx(args.checkpoint, args.out, **kw)}")
+        return 0
+    from lunarnav_ml.export.quantize import load_calibration_images, quantize_int8
+
+    check_destination(args.int8_out)
+    if args.int8_out.resolve() == args.out.resolve():
+        raise ConfigError(f"--int8-out: {args.int8_out} is also --out; give another file")
+    images = load_calibration_images(args.calib, args.n_calib)
+    with atomic_path(args.out) as fp32:  # renamed onto --out once the int8 file is written
+        export_onnx(args.checkpoint, fp32, **kw)
+        q = quantize_int8(fp32, args.int8_out, images, method=args.calib_method)
+    print(f"wrote {args.out}")
+    print(f"wrote {q} (int8, {len(images)} calibration images)")
     return 0
 
 
@@ -79,20 +97,41 @@ def _add_bench(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_bench(args: argparse.Namespace) -> int:
-    """Print one line per (model, size, threads)."""
+    """Print one line per (model, size, threads).
+
+    Every setting and model is checked before the first timing: ``--sizes`` must be positive
+    multiples of each model's largest stride (and the input of a fixed-size export).
+    """
     from lunarnav_ml.export.bench import bench_onnx, conv_flops
     from lunarnav_ml.runtime.session import open_session
 
     if not args.onnx and args.checkpoint is None:
         raise ConfigError("bench: give --onnx FILE(S) and/or --checkpoint")
-    if args.runs < 1 or args.warmup < 0 or min(args.threads) < 1 or min(args.sizes) < 1:
-        raise ConfigError("bench: --runs, --threads and --sizes must be positive")
-    if args.frame_size is not None and args.frame_size < 1:
-        raise ConfigError(f"bench: --frame-size must be positive, got {args.frame_size}")
+    for option, value, low in (("--runs", args.runs, 1), ("--warmup", args.warmup, 0),
+                               ("--threads", min(args.threads), 1),
+                               ("--sizes", min(args.sizes), 1)):
+        if value < low:
+            raise ConfigError(f"bench: {option} must be >= {low}, got {value}")
+    if args.frame_size is not None:
+        if not 1 <= args.frame_size <= MAX_FRAME_SIZE:
+            raise ConfigError(f"bench: --frame-size must be in 1..{MAX_FRAME_SIZE} px, "
+                              f"got {args.frame_size}")
+        if not args.onnx:
+            raise ConfigError("bench: --frame-size applies to --onnx models only")
     kw = {"runs": args.runs, "warmup": args.warmup, "conf_thres": args.conf,
           "network_only": args.network_only}
     for path in args.onnx:  # every file checked before the first timing line
-        open_session(path)
+        meta = open_session(path)[1]
+        _check_sizes(args.sizes, meta.max_stride, path)
+        if not meta.dynamic_hw and any((s, s) != meta.input_size for s in args.sizes):
+            raise ConfigError(f"bench: --sizes {_join(args.sizes)}: {path} was exported with a "
+                              f"fixed input {meta.input_size}")
+    parts = None
+    if args.checkpoint is not None:
+        from lunarnav_ml.export.onnx_export import load_parts
+
+        parts = load_parts(args.checkpoint)
+        _check_sizes(args.sizes, max(parts.strides), args.checkpoint)
     for path in args.onnx:
         for size in args.sizes:
             gflop = conv_flops(path, size) / 1e9
@@ -101,16 +140,25 @@ def run_bench(args: argparse.Namespace) -> int:
                 print(f"{path.name:28s} {size:5d} px {threads} thr  onnxruntime  {s.row()}  "
                       f"{gflop / (s.median_ms / 1e3):6.1f} GFLOP/s ({gflop:.1f} GFLOP)",
                       flush=True)
-    if args.checkpoint is not None:
-        _bench_checkpoint(args, kw)
+    if parts is not None:
+        _bench_checkpoint(args, parts, kw)
     return 0
 
 
-def _bench_checkpoint(args: argparse.Namespace, kw: dict) -> None:
-    from lunarnav_ml.export.bench import bench_torch
-    from lunarnav_ml.export.onnx_export import load_parts
+def _join(sizes: list[int]) -> str:
+    return " ".join(map(str, sizes))
 
-    parts = load_parts(args.checkpoint)
+
+def _check_sizes(sizes: list[int], stride: int, model: Path) -> None:
+    bad = [s for s in sizes if s % stride]
+    if bad:
+        raise ConfigError(f"bench: --sizes {_join(bad)}: input sides must be multiples of "
+                          f"{stride} (the largest stride of {model})")
+
+
+def _bench_checkpoint(args: argparse.Namespace, parts: Any, kw: dict) -> None:
+    from lunarnav_ml.export.bench import bench_torch
+
     for size in args.sizes:
         for threads in args.threads:
             s = bench_torch(parts, size, threads, **kw)

@@ -63,6 +63,9 @@ def rover_to_camera(
 
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "baseline_m", "height_m", "pitch_deg", "roll_deg")
+# Possible camera angles, degrees: the optical axis between straight down (pitch 90) and
+# straight up (-90); any roll about it.
+CAMERA_ANGLE_RANGES = {"pitch_deg": (-90.0, 90.0), "roll_deg": (-180.0, 180.0)}
 
 
 def camera_values(record: Any) -> dict[str, float]:
@@ -119,19 +122,36 @@ class StereoRig:
             )
 
     @classmethod
-    def from_camera_record(cls, record: Mapping[str, Any]) -> StereoRig:
+    def from_camera_record(cls, record: Mapping[str, Any],
+                           image_size: tuple[int, int] | None = None) -> StereoRig:
         """Build from a dataset image's ``camera`` record (ARCHITECTURE.md).
 
+        Args:
+            record: the camera record.
+            image_size: (width, height) px of the image it describes; when given, the principal
+                point must lie in the image (:func:`check_principal_point`).
+
         Raises:
-            InputError: a key is missing or not a finite number (:func:`camera_values`), or
-                fx and fy differ (the lifter needs square pixels).
+            InputError: naming the field: a key is missing or not a finite number
+                (:func:`camera_values`), a value is impossible (fx, fy, baseline_m or
+                height_m not positive, pitch_deg or roll_deg out of range), or fx and fy
+                differ (the lifter needs square pixels).
         """
         cam = camera_values(record)
+        for key in ("fx", "fy", "baseline_m", "height_m"):
+            if cam[key] <= 0:
+                raise InputError(f"camera: {key} must be positive, got {cam[key]}")
+        for key, (lo, hi) in CAMERA_ANGLE_RANGES.items():
+            if not lo <= cam[key] <= hi:
+                raise InputError(f"camera: {key} must lie in [{lo:g}, {hi:g}], got {cam[key]}")
         fx, fy = cam["fx"], cam["fy"]
         if abs(fx - fy) > 1e-6 * fx:
             raise InputError(f"camera: fx ({fx}) and fy ({fy}) differ; expected a rectified pair")
-        return cls(fx, cam["baseline_m"], cam["cx"], cam["cy"], cam["height_m"],
-                   cam["pitch_deg"], cam["roll_deg"])
+        rig = cls(fx, cam["baseline_m"], cam["cx"], cam["cy"], cam["height_m"],
+                  cam["pitch_deg"], cam["roll_deg"])
+        if image_size is not None:
+            check_principal_point(rig, *image_size)
+        return rig
 
     @property
     def rotation(self) -> np.ndarray:
@@ -151,3 +171,16 @@ class StereoRig:
     def to_rover(self, points_cam: np.ndarray) -> np.ndarray:
         """Camera-frame points (N, 3) m to the rover frame (N, 3) m."""
         return camera_to_rover(points_cam, self.height_m, self.pitch_deg, self.roll_deg)
+
+
+def check_principal_point(rig: StereoRig, width: int, height: int) -> None:
+    """Refuse a principal point outside a width x height px image (a record for another
+    image size, or cx and cy swapped with the size).
+
+    Raises:
+        InputError: naming ``cx`` or ``cy``, its value and the image size.
+    """
+    for key, value, side, what in (("cx", rig.cx, width, "wide"), ("cy", rig.cy, height, "high")):
+        if not 0.0 <= value <= side:
+            raise InputError(f"camera: {key} ({value}) lies outside the image, which is {side} "
+                             f"px {what} (expected 0..{side})")

@@ -13,6 +13,7 @@ Source names are matched case-insensitively with surrounding spaces removed.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -93,8 +94,10 @@ def load_category_map(path: str | Path | None = None) -> CategoryMap:
     if unmapped not in UNMAPPED_POLICIES:
         raise ConfigError(f"{path}: 'unmapped' must be one of {UNMAPPED_POLICIES}, got {unmapped!r}")
     min_h = data.get("ignore_height_below_px", 6.0)
-    if not isinstance(min_h, (int, float)) or isinstance(min_h, bool) or min_h < 0:
-        raise ConfigError(f"{path}: 'ignore_height_below_px' must be a number >= 0, got {min_h!r}")
+    if not isinstance(min_h, (int, float)) or isinstance(min_h, bool) \
+            or not math.isfinite(min_h) or min_h < 0:
+        raise ConfigError(f"{path}: 'ignore_height_below_px' must be a finite number >= 0, "
+                          f"got {min_h!r}")
     return CategoryMap(_mapping(path, data["map"]), unmapped, float(min_h), path)
 
 

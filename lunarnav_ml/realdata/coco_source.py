@@ -43,6 +43,10 @@ def read_coco_split(ann_file: Path, name: str, cmap: CategoryMap, skip_bad: bool
     for k, img in enumerate(data["images"]):
         split.images_in += 1
         key = img.get("id") if isinstance(img, dict) else None
+        if not _hashable(key):
+            split.problem("bad_image_entry", f"{ann_file}: images[{k}]: 'id' must be a number "
+                          f"or a string, got {key!r}")
+            continue
         if key in by_id:
             split.problem("duplicate_image_id", f"{ann_file}: images[{k}] repeats image id {key}")
             continue
@@ -58,8 +62,20 @@ def _categories(ann_file: Path, categories: list) -> dict[Any, str]:
     for k, cat in enumerate(categories):
         if not isinstance(cat, dict) or "id" not in cat or "name" not in cat:
             raise InputError(f"{ann_file}: categories[{k}] needs 'id' and 'name', got {cat!r}")
-        table[cat["id"]] = str(cat["name"])
+        key = cat["id"]
+        if isinstance(key, bool) or not isinstance(key, (int, str)):
+            raise InputError(f"{ann_file}: categories[{k}] ({cat['name']!r}): 'id' must be an "
+                             f"integer, got {key!r}")
+        if table.get(key, str(cat["name"])) != str(cat["name"]):
+            raise InputError(f"{ann_file}: categories[{k}] ({cat['name']!r}) reuses the id "
+                             f"{key!r} of {table[key]!r}")
+        table[key] = str(cat["name"])
     return table
+
+
+def _hashable(value: Any) -> bool:
+    """Whether ``value`` can be an id (a JSON list or object cannot)."""
+    return not isinstance(value, (list, dict))
 
 
 def _image(split: SplitLabels, ann_file: Path, k: int, img: Any) -> dict[str, Any] | None:
@@ -90,14 +106,14 @@ def _annotation(split: SplitLabels, ann_file: Path, k: int, ann: Any,
         return
     where = f"{ann_file}: annotations[{k}] (id {ann.get('id')})"
     image_id = ann.get("image_id")
-    if image_id not in by_id:
+    if not _hashable(image_id) or image_id not in by_id:
         split.problem("unknown_image_id", f"{where}: unknown image_id {image_id!r}")
         return
     image = by_id[image_id]
     if image is None:  # its image was skipped (and counted) already
         split.skipped["annotation_of_skipped_image"] += 1
         return
-    if ann.get("category_id") not in categories:
+    if not _hashable(ann.get("category_id")) or ann.get("category_id") not in categories:
         split.problem("unknown_category", f"{where}: unknown category_id "
                       f"{ann.get('category_id')!r} (categories: {sorted(categories)})")
         return

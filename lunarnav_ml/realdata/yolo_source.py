@@ -50,17 +50,23 @@ def read_class_names(folders: list[Path]) -> dict[int, str]:
 
 
 def _names_from(path: Path) -> dict[int, str]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a class names file (not UTF-8 text)") from None
     if path.suffix in (".yaml", ".yml"):
         try:
-            names = (yaml.safe_load(path.read_text()) or {}).get("names")
+            names = (yaml.safe_load(text) or {}).get("names")
         except (yaml.YAMLError, AttributeError) as err:
-            raise InputError(f"{path}: not a YAML mapping with a 'names' entry ({err})") from err
+            detail = " ".join(str(err).split())  # PyYAML's message spans lines: one line here
+            raise InputError(f"{path}: not a YAML mapping with a 'names' entry ({detail})"
+                             ) from None
         if isinstance(names, list):
             return {i: str(n) for i, n in enumerate(names)}
         if isinstance(names, dict) and all(isinstance(i, int) for i in names):
             return {i: str(n) for i, n in names.items()}
         raise InputError(f"{path}: 'names' must be a list or an {{index: name}} mapping")
-    names = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    names = [line.strip() for line in text.splitlines() if line.strip()]
     if not names:
         raise InputError(f"{path}: no class names in the file")
     return dict(enumerate(names))
@@ -90,20 +96,35 @@ def read_yolo_split(folder: Path, name: str, class_names: dict[int, str], cmap: 
         if size is None:
             split.problem("unreadable_image", f"{path}: not a readable image")
             continue
+        text = _label_text(split, labels[stem]) if stem in labels else ""
+        if text is None:  # skipped (and counted) with its unreadable label file
+            continue
         image = split.add_image(path, *size, source=original_name(path.name),
                                 source_file=path.name)
         if stem in labels:
-            _read_labels(split, labels[stem], image, class_names)
+            _read_labels(split, labels[stem], text, image, class_names)
     return split
 
 
 def _count_lines(path: Path) -> int:
-    return sum(1 for line in path.read_text().splitlines() if line.strip())
+    """Non-blank lines, counted on the bytes (a file that is not text still has lines)."""
+    return sum(1 for line in path.read_bytes().splitlines() if line.strip())
 
 
-def _read_labels(split: SplitLabels, path: Path, image: dict[str, Any],
+def _label_text(split: SplitLabels, path: Path) -> str | None:
+    """A label file's text; ``None`` (counted) when it is not UTF-8 text."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        split.annotations_in += _count_lines(path)
+        split.problem("unreadable_labels", f"{path}: not a YOLO label file (not UTF-8 text: "
+                      f"byte {err.object[err.start]:#04x} at offset {err.start})")
+        return None
+
+
+def _read_labels(split: SplitLabels, path: Path, text: str, image: dict[str, Any],
                  class_names: dict[int, str]) -> None:
-    for n, line in enumerate(path.read_text().splitlines(), start=1):
+    for n, line in enumerate(text.splitlines(), start=1):
         if not line.strip():
             continue
         split.annotations_in += 1

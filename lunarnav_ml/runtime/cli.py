@@ -65,7 +65,7 @@ def read_camera(path: Path) -> dict[str, float]:
 def run_localize(args: argparse.Namespace) -> int:
     """Localize the pair's craters; write ``craters3d.json`` and ``overlay.jpg``."""
     from lunarnav_ml.eval.cli import load_predictor
-    from lunarnav_ml.geometry.frames import StereoRig
+    from lunarnav_ml.geometry.frames import StereoRig, check_principal_point
     from lunarnav_ml.geometry.stereo import SGBMStereo
     from lunarnav_ml.runtime.craters3d import StereoCraterLocalizer
     from lunarnav_ml.utils import atomic
@@ -85,6 +85,10 @@ def run_localize(args: argparse.Namespace) -> int:
     if left.shape != right.shape:
         raise InputError(f"{args.right}: {right.shape[1]}x{right.shape[0]} px, but the left "
                          f"image is {left.shape[1]}x{left.shape[0]}")
+    try:
+        check_principal_point(rig, left.shape[1], left.shape[0])
+    except InputError as err:
+        raise InputError(f"{args.camera}: {err} ({args.left})") from None
     weights = args.weights or DEFAULT_WEIGHTS
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
@@ -94,7 +98,8 @@ def run_localize(args: argparse.Namespace) -> int:
     craters = localizer(left, right)
     record = {"left": str(args.left), "right": str(args.right), "camera": camera,
               "weights": str(weights), "conf": args.conf, "iou": args.iou,
-              "lift_from": args.lift_from, "sgbm": {"mode": stereo.mode, "num_disparities": stereo.num_disparities},
+              "lift_from": args.lift_from,
+              "sgbm": {"mode": stereo.mode, "num_disparities": stereo.num_disparities},
               "frame": "rover: x forward, y left, z up, m",
               "timing_ms": {k: round(v, 1) for k, v in localizer.timing_ms.items()},
               "craters": [crater_record(c) for c in craters]}

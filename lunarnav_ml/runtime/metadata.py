@@ -9,6 +9,7 @@ exporter). This module imports only the standard library.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -94,12 +95,14 @@ class ModelMetadata:
 
         Raises:
             InputError: the file is not a lunarnav export, was written with a format version
-                this runtime does not read, or a field is missing or malformed.
+                this runtime does not read, or a field is missing, malformed or impossible
+                (an input size that is not a positive multiple of the largest stride, a std
+                that is not positive, a NaN mean, no class names).
         """
         values = _decode_props(props, source)
         _check_format_version(values, source)
         try:
-            return cls(
+            meta = cls(
                 class_names=tuple(str(n) for n in values["class_names"]),
                 input_size=_int_pair(values["input_size"]),
                 strides=tuple(int(s) for s in values["strides"]),
@@ -119,6 +122,8 @@ class ModelMetadata:
             raise InputError(f"{source}: metadata key {PREFIX}{err.args[0]} is missing") from None
         except (TypeError, ValueError) as err:
             raise InputError(f"{source}: malformed lunarnav metadata ({err})") from None
+        _check_values(meta, values, source)
+        return meta
 
 
 def _decode_props(props: Mapping[str, str], source: str) -> dict[str, Any]:
@@ -144,6 +149,42 @@ def _check_format_version(values: Mapping[str, Any], source: str) -> None:
             f"{source}: exported with format version {version} by lunarnav_ml "
             f"{values.get('project_version', '?')}; this runtime reads format version(s) "
             f"{', '.join(map(str, SUPPORTED_FORMAT_VERSIONS))}: re-export the checkpoint")
+
+
+def _check_values(meta: ModelMetadata, values: Mapping[str, Any], source: str) -> None:
+    """Refuse values no exporter writes, naming the key: they would fail later as a NumPy or
+    onnxruntime error (a negative size) or silently (a zero std makes every input NaN)."""
+    def bad(key: str, expected: str) -> InputError:
+        return InputError(f"{source}: metadata {PREFIX}{key} must be {expected}, "
+                          f"got {values[key]!r}")
+
+    if not meta.class_names:
+        raise bad("class_names", "a non-empty list of class names")
+    if not meta.strides or not all(_is_int(s) and s > 0 for s in values["strides"]):
+        raise bad("strides", "a non-empty list of positive integers")
+    if not all(_is_int(s) for s in values["input_size"]) or \
+            any(s <= 0 or s % meta.max_stride for s in meta.input_size):
+        raise bad("input_size", f"[H, W], positive multiples of the largest stride "
+                                f"{meta.max_stride}")
+    if len(meta.anchors) != len(meta.strides) or not all(
+            lv and all(math.isfinite(v) and v > 0 for a in lv for v in a) for lv in meta.anchors):
+        raise bad("anchors", f"{len(meta.strides)} levels (one per stride) of positive finite "
+                             f"(w, h) pairs")
+    if len(meta.scale_xy) != len(meta.strides) or not all(math.isfinite(v)
+                                                           for v in meta.scale_xy):
+        raise bad("scale_xy", f"{len(meta.strides)} finite numbers (one per stride)")
+    if not all(math.isfinite(v) for v in meta.mean):
+        raise bad("mean", "3 finite numbers")
+    if not all(math.isfinite(v) and v > 0 for v in meta.std):
+        raise bad("std", "3 finite numbers > 0")
+    if not 0 <= meta.pad_value <= 255:
+        raise bad("pad_value", "a gray level in 0..255")
+
+
+def _is_int(value: Any) -> bool:
+    if isinstance(value, bool):
+        return False
+    return isinstance(value, int) or (isinstance(value, float) and value.is_integer())
 
 
 def _int_pair(value: Any) -> tuple[int, int]:

@@ -97,3 +97,29 @@ def test_malformed_annotations_name_the_file_and_field(tmp_path, text, message):
         baseline_report(bad, tmp_path / "out", method="stereo")
     assert str(bad) in str(err.value)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("bad", ["right", "left", "right_missing"])
+def test_stereo_baseline_names_the_unreadable_image_and_the_annotation_file(tmp_path, bad):
+    import json
+
+    import cv2
+
+    from lunarnav_ml.baselines.report import baseline_report
+
+    cam = {**CAMERA, "fx": 32.0, "fy": 32.0, "cx": 31.5, "cy": 31.5, "baseline_m": 0.3}
+    img = {"id": 1, "file_name": "left.png", "right_file": "right.png", "width": 64,
+           "height": 64, "camera": cam}
+    for name in ("left.png", "right.png"):
+        cv2.imwrite(str(tmp_path / name), np.full((64, 64), 100, np.uint8))
+    if bad == "right_missing":
+        (tmp_path / "right.png").unlink()
+    else:
+        (tmp_path / f"{bad}.png").write_text("not a png")
+    ann = tmp_path / "annotations.json"
+    ann.write_text(json.dumps({"images": [img], "annotations": []}))
+    key, name = ("file_name", "left.png") if bad == "left" else ("right_file", "right.png")
+    with pytest.raises(InputError, match=rf"^{ann}: image id 1: cannot read its {key} "
+                                         rf"{tmp_path / name} \(missing, corrupt"):
+        baseline_report(tmp_path, tmp_path / "out", method="stereo", progress=False)
+    assert not (tmp_path / "out").exists()

@@ -8,7 +8,7 @@ import cv2
 import pytest
 
 from lunarnav_ml.cli import build_parser
-from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.errors import ConfigError, InputError, LunarNavError
 from lunarnav_ml.export.bench import synthetic_frame
 from lunarnav_ml.export.cli import main
 from lunarnav_ml.runtime import OnnxDetector
@@ -112,3 +112,101 @@ def test_top_level_scripts_are_thin_entry_points(script, command):
                           check=False, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert f"usage: lunarnav {command}" in proc.stdout
+
+
+@pytest.mark.parametrize("calib", ["missing", "empty", "text"])
+def test_bad_calibration_images_are_found_before_export(checkpoint, tmp_path, calib):
+    folder = tmp_path / "calib"
+    if calib != "missing":
+        folder.mkdir()
+    if calib == "text":
+        (folder / "a.png").write_text("not a png")
+    args = parse("export", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "m.onnx"),
+                 "--int8-out", str(tmp_path / "m8.onnx"), "--calib", str(folder))
+    with pytest.raises(InputError, match="calib"):
+        args.func(args)
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["calib"] if calib != "missing"
+                                                          else [])
+
+
+def _calib_folder(tmp_path):
+    calib = tmp_path / "calib"
+    calib.mkdir()
+    cv2.imwrite(str(calib / "0.png"), synthetic_frame(128))
+    return calib
+
+
+@pytest.mark.parametrize(("option", "where", "match"), [
+    ("--int8-out", "folder", "adir: output file is an existing folder"),
+    ("--int8-out", "under_file", "m.onnx: cannot write under .*afile, which is a file"),
+    ("--int8-out", "same", "--int8-out: .* is also --out"),
+    ("--out", "folder", "adir: output file is an existing folder"),
+    ("--out", "under_file", "m.onnx: cannot write under .*afile"),
+])
+def test_unwritable_outputs_are_refused_before_export(checkpoint, tmp_path, monkeypatch,
+                                                      option, where, match):
+    from lunarnav_ml.export import onnx_export
+
+    monkeypatch.setattr(onnx_export, "export_onnx", lambda *a, **kw: pytest.fail("exported"))
+    calib = _calib_folder(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "adir").mkdir()
+    target = {"folder": tmp_path / "adir", "under_file": tmp_path / "afile" / "m.onnx",
+              "same": tmp_path / "m.onnx"}[where]
+    paths = {"--out": tmp_path / "m.onnx", "--int8-out": tmp_path / "m8.onnx", option: target}
+    args = parse("export", "--checkpoint", str(checkpoint), "--out", str(paths["--out"]),
+                 "--int8-out", str(paths["--int8-out"]), "--calib", str(calib))
+    with pytest.raises(LunarNavError, match=match):
+        args.func(args)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "afile", "calib"]
+
+
+def test_failed_quantization_leaves_no_fp32_file(checkpoint, tmp_path, monkeypatch):
+    from lunarnav_ml.export import quantize
+
+    def fail(*a, **kw):
+        raise InputError("quantization failed")
+
+    monkeypatch.setattr(quantize, "quantize_int8", fail)
+    calib = _calib_folder(tmp_path)
+    args = parse("export", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "m.onnx"),
+                 "--int8-out", str(tmp_path / "m8.onnx"), "--calib", str(calib))
+    with pytest.raises(InputError, match="quantization failed"):
+        args.func(args)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calib"]
+
+
+@pytest.mark.parametrize("model", ["onnx", "checkpoint"])
+def test_bench_sizes_must_be_multiples_of_the_stride(onnx_path, checkpoint, capsys, model):
+    path = onnx_path if model == "onnx" else checkpoint
+    args = parse("bench", f"--{model}", str(path), "--sizes", "64", "100", "--runs", "1",
+                 "--warmup", "0")
+    with pytest.raises(ConfigError, match=rf"--sizes 100: .*multiples of 32 .*{path.name}"):
+        args.func(args)
+    assert capsys.readouterr().out == ""  # refused before the first timing
+
+
+def test_bench_fixed_input_model_takes_its_own_size_only(onnx_static_path, capsys):
+    args = parse("bench", "--onnx", str(onnx_static_path), "--sizes", "64", "--runs", "1")
+    with pytest.raises(ConfigError, match="--sizes 64: .*fixed input"):
+        args.func(args)
+    assert capsys.readouterr().out == ""
+
+
+@pytest.mark.parametrize(("argv", "match"), [
+    (["--warmup", "-1"], "--warmup must be >= 0, got -1"),
+    (["--runs", "0"], "--runs must be >= 1"),
+    (["--threads", "1", "0"], "--threads must be >= 1"),
+    (["--sizes", "-32"], "--sizes must be >= 1"),
+    (["--frame-size", "100000"], "--frame-size must be in 1..16384"),
+])
+def test_bench_options_are_named(onnx_path, argv, match):
+    args = parse("bench", "--onnx", str(onnx_path), *argv)
+    with pytest.raises(ConfigError, match=match):
+        args.func(args)
+
+
+def test_bench_frame_size_needs_an_onnx_model(checkpoint):
+    args = parse("bench", "--checkpoint", str(checkpoint), "--frame-size", "256")
+    with pytest.raises(ConfigError, match="--frame-size applies to --onnx"):
+        args.func(args)

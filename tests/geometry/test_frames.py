@@ -64,5 +64,46 @@ def test_rig_from_camera_record():
     with pytest.raises(InputError, match="camera: pitch_deg must be a finite number"):
         StereoRig.from_camera_record({**rec, "pitch_deg": float("nan")})
     assert StereoRig.from_camera_record({k: v for k, v in rec.items() if k != "roll_deg"}) == rig
+
+
+@pytest.mark.parametrize(("field", "value", "match"), [
+    ("fx", -512.0, "camera: fx must be positive, got -512.0"),  # not "fx and fy differ"
+    ("fy", 0.0, "camera: fy must be positive"),
+    ("baseline_m", -0.3, "camera: baseline_m must be positive"),
+    ("height_m", -1.0, "camera: height_m must be positive, got -1.0"),
+    ("height_m", 0.0, "camera: height_m must be positive"),
+    ("pitch_deg", 400.0, r"camera: pitch_deg must lie in \[-90, 90\], got 400.0"),
+    ("pitch_deg", -91.0, "camera: pitch_deg must lie in"),
+    ("roll_deg", 200.0, r"camera: roll_deg must lie in \[-180, 180\]"),
+])
+def test_impossible_camera_records_name_the_field(field, value, match):
+    rec = {"height_m": 1.5, "pitch_deg": 20.0, "baseline_m": 0.3, "fx": 512.0, "fy": 512.0,
+           "cx": 511.5, "cy": 511.5}
+    with pytest.raises(InputError, match=f"^{match}"):
+        StereoRig.from_camera_record({**rec, field: value})
+
+
+def test_principal_point_must_lie_in_the_image():
+    rec = {"height_m": 1.5, "pitch_deg": 20.0, "baseline_m": 0.3, "fx": 64.0, "fy": 64.0,
+           "cx": 63.5, "cy": 63.5}
+    assert StereoRig.from_camera_record(rec, image_size=(128, 128)).cx == 63.5
+    with pytest.raises(InputError, match=r"camera: cx \(5000.0\) lies outside the image, which "
+                                         r"is 128 px wide \(expected 0..128\)"):
+        StereoRig.from_camera_record({**rec, "cx": 5000.0}, image_size=(128, 128))
+    with pytest.raises(InputError, match="camera: cy .* 32 px high"):
+        StereoRig.from_camera_record(rec, image_size=(128, 32))
+
+
+@pytest.mark.parametrize(("pitch", "roll"), [(15.0, -3.0), (25.0, 3.0), (-60.0, 0.0),
+                                             (89.0, 45.0), (-10.0, -45.0), (-30.0, 0.0)])
+def test_synth_camera_records_are_accepted(pitch, roll):
+    # the extremes of synth.config's camera ranges (pitch -60..89, roll -45..45, height 0.1..20)
+    synth_cam = pytest.importorskip("lunarnav_ml.synth.camera")
+    for height in (0.1, 1.5, 20.0):
+        for fov in (10.0, 90.0, 150.0):
+            rig = synth_cam.make_rig(np.zeros(3), width=128, height=96, fov_deg=fov,
+                                     height_m=height, yaw_deg=0.0, pitch_deg=pitch,
+                                     roll_deg=roll, baseline_m=0.3)
+            StereoRig.from_camera_record(rig.camera_dict(), image_size=(128, 96))
     with pytest.raises(InputError, match="positive"):
         StereoRig(0.0, 0.3, 1, 1, 1.5, 0)

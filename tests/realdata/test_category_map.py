@@ -40,6 +40,9 @@ def test_error_policy_raises_for_unlisted_names(tmp_path):
     ("map: {Crater: crater, crater: rock}\n", "twice"),
     ("- crater\n", "'map' table"),
     ("map: {crater: crater}\nignore_height_below_px: -1\n", "ignore_height_below_px"),
+    ("map: {crater: crater}\nignore_height_below_px: .nan\n",
+     "'ignore_height_below_px' must be a finite number >= 0, got nan"),
+    ("map: {crater: crater}\nignore_height_below_px: .inf\n", "finite number >= 0, got inf"),
 ])
 def test_bad_map_files_name_the_file(tmp_path, text, match):
     path = tmp_path / "map.yaml"

@@ -192,3 +192,65 @@ def test_format_detection_errors(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="give --format"):
         import_real(tmp_path / "empty", tmp_path / "out")
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: d["categories"][1].update(id=[1]),
+     r"categories\[1\] \('artifact'\): 'id' must be an integer, got \[1\]"),
+    (lambda d: d["categories"][2].update(id=d["categories"][1]["id"]),
+     r"categories\[2\] \(.*\) reuses the id 1 of 'artifact'"),
+])
+def test_bad_category_ids_name_the_file(roboflow, tmp_path, edit, match):
+    ann_file = roboflow / "train" / "_annotations.coco.json"
+    edit_coco(ann_file, edit)
+    with pytest.raises(InputError, match=match) as err:
+        import_real(roboflow, tmp_path / "out")
+    assert str(err.value).startswith(f"{ann_file}: ")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("edit, match, reason", [
+    (lambda d: d["images"][0].update(id=[0]), r"images\[0\]: 'id' must be a number or a",
+     "bad_image_entry"),
+    (_set(0, "image_id", [0]), r"annotations\[0\] \(id 1\): unknown image_id \[0\]",
+     "unknown_image_id"),
+    (_set(0, "category_id", {"id": 1}), r"annotations\[0\] \(id 1\): unknown category_id",
+     "unknown_category"),
+])
+def test_list_ids_are_bad_entries_not_type_errors(roboflow, tmp_path, edit, match, reason):
+    ann_file = roboflow / "train" / "_annotations.coco.json"
+    edit_coco(ann_file, edit)
+    with pytest.raises(InputError, match=match):
+        import_real(roboflow, tmp_path / "out")
+    train = import_real(roboflow, tmp_path / "out", skip_bad=True)["splits"]["train"]
+    assert train["skipped"].get(reason) == 1
+
+
+def test_yolo_label_file_that_is_not_text(tmp_path):
+    src = make_yolo(tmp_path / "yolo")
+    label = src / "valid" / "labels" / f"{roboflow_name('PCAML-Q-004_A_2A.png', 0)[:-4]}.txt"
+    label.write_bytes(b"0 0.5 0.5 0.2 0.2\n\x80\xff\x00 binary\n")
+    with pytest.raises(InputError, match=r"\.txt: not a YOLO label file \(not UTF-8 text: "
+                                         r"byte 0x80 at offset 18\)") as err:
+        import_real(src, tmp_path / "out")
+    assert "\n" not in str(err.value) and str(label) in str(err.value)
+    valid = import_real(src, tmp_path / "out", skip_bad=True)["splits"]["valid"]
+    assert valid["skipped"] == {"unreadable_labels": 1}
+    assert (valid["images_in"], valid["images_out"], valid["annotations_in"]) == (1, 0, 2)
+    orphan = src / "train" / "labels" / "gone.txt"  # a binary label without its image
+    orphan.write_bytes(b"\x80\x81\n")
+    with pytest.raises(InputError, match="gone.txt: labels an image gone"):
+        import_real(src, tmp_path / "out2")
+
+
+@pytest.mark.parametrize("name, content, match", [
+    ("data.yaml", "names: [a, \n", r"data.yaml: not a YAML mapping with a 'names' entry \("),
+    ("data.yaml", b"names: [\xff]\n", r"data.yaml: not a class names file \(not UTF-8 text\)"),
+])
+def test_bad_class_name_files_are_one_line(tmp_path, name, content, match):
+    src = make_yolo(tmp_path / "yolo")
+    path = src / name
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    with pytest.raises(InputError, match=match) as err:
+        import_real(src, tmp_path / "out")
+    assert "\n" not in str(err.value)

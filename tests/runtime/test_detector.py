@@ -152,3 +152,15 @@ def test_metadata_inconsistent_with_graph(onnx_path, tmp_path):
     onnx.save(model, path)
     with pytest.raises(InputError, match="2 classes"):
         OnnxDetector(path)
+
+
+def test_class_names_that_disagree_with_the_graph_name_the_key(onnx_path, tmp_path):
+    model = onnx.load(onnx_path)
+    for prop in model.metadata_props:
+        if prop.key == "lunarnav.class_names":
+            prop.value = json.dumps(["crater"])
+    path = tmp_path / "one.onnx"
+    onnx.save(model, path)
+    with pytest.raises(InputError, match="one.onnx: metadata lunarnav.class_names names 1 class "
+                                         "but output 'decoded' scores 3"):
+        OnnxDetector(path)

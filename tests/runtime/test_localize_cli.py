@@ -93,7 +93,18 @@ def test_read_camera(tmp_path):
         read_camera(path)
 
 
-@pytest.mark.parametrize("case", ["camera_nan", "camera_corrupt", "sizes", "left_missing",
+CAMERA_FAULTS = {  # case: (camera fields, expected message)
+    "camera_nan": ({"fx": float("nan")}, "camera.json: camera: fx must be a finite number"),
+    "cx_far": ({"cx": 5000.0}, "camera: cx (5000.0) lies outside the image, which is 640 px"),
+    "cy_negative": ({"cy": -40.0}, "camera: cy (-40.0) lies outside the image, which is 480"),
+    "height_negative": ({"height_m": -1}, "camera.json: camera: height_m must be positive"),
+    "pitch_400": ({"pitch_deg": 400}, "camera: pitch_deg must lie in [-90, 90], got 400.0"),
+    "fx_negative": ({"fx": -1.0}, "camera.json: camera: fx must be positive, got -1.0"),
+    "baseline_zero": ({"baseline_m": 0}, "camera: baseline_m must be positive, got 0.0"),
+}
+
+
+@pytest.mark.parametrize("case", [*CAMERA_FAULTS, "camera_corrupt", "sizes", "left_missing",
                                   "conf"])
 def test_bad_inputs_are_one_line_and_write_nothing(pair, tmp_path, capsys, case):
     root, _ = pair
@@ -102,14 +113,14 @@ def test_bad_inputs_are_one_line_and_write_nothing(pair, tmp_path, capsys, case)
     for name in ("left.png", "right.png", "camera.json"):
         (work / name).write_bytes((root / name).read_bytes())
     extra, expect = [], {
-        "camera_nan": "camera.json: camera: fx must be a finite number",
+        **{k: v[1] for k, v in CAMERA_FAULTS.items()},
         "camera_corrupt": "camera.json: camera is not valid JSON",
         "sizes": "right.png: 320x240 px, but the left image is 640x480",
         "left_missing": "left.png: image file not found",
         "conf": "--conf must lie in [0, 1]"}[case]
-    if case == "camera_nan":
+    if case in CAMERA_FAULTS:
         rec = json.loads((work / "camera.json").read_text())
-        rec["camera"]["fx"] = float("nan")
+        rec["camera"].update(CAMERA_FAULTS[case][0])
         (work / "camera.json").write_text(json.dumps(rec))
     elif case == "camera_corrupt":
         (work / "camera.json").write_text('{"camera": {')
