@@ -32,6 +32,20 @@ def mixing_weights(sizes: list[int], weights: list[float]) -> torch.Tensor:
                       for n, w in zip(sizes, weights)])
 
 
+def _is_int(x: object) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def check_loader_settings(img_size: int, batch_size: int, num_workers: int) -> None:
+    """ConfigError naming the ``data.*`` setting that no loader can run with."""
+    if not _is_int(img_size) or img_size <= 0 or img_size % 32:
+        raise ConfigError(f"data.img_size: must be a positive multiple of 32, got {img_size!r}")
+    if not _is_int(batch_size) or batch_size < 1:
+        raise ConfigError(f"data.batch_size: must be an integer >= 1, got {batch_size!r}")
+    if not _is_int(num_workers) or num_workers < 0:
+        raise ConfigError(f"data.num_workers: must be an integer >= 0, got {num_workers!r}")
+
+
 class DetectionDataModule(L.LightningDataModule):
     """Training and validation loaders over COCO datasets.
 
@@ -57,6 +71,7 @@ class DetectionDataModule(L.LightningDataModule):
                  mosaic_prob: float = 0.0, augment: bool = True, cache: bool = True,
                  num_classes: int = 3, read_sizes: list[int | None] | None = None) -> None:
         super().__init__()
+        check_loader_settings(img_size, batch_size, num_workers)
         self.train_files = [train] if isinstance(train, (str, Path)) else list(train)
         if not self.train_files:
             raise ConfigError("data.train: give at least one annotations.json")

@@ -43,8 +43,9 @@ class CocoDetection(Dataset):
     def __init__(self, ann_file: str | Path, img_size: int = 320, augment: bool = False,
                  mosaic_prob: float = 0.0, cache: bool = True, num_classes: int = 3,
                  read_size: int | None = None) -> None:
-        if img_size % 32:
-            raise InputError(f"img_size must be a multiple of 32, got {img_size}")
+        if isinstance(img_size, bool) or not isinstance(img_size, int) or img_size <= 0 \
+                or img_size % 32:
+            raise InputError(f"img_size must be a positive multiple of 32, got {img_size!r}")
         if read_size is not None and read_size < img_size:
             raise InputError(f"read_size ({read_size}) must be at least img_size ({img_size})")
         self.ann_file = Path(ann_file)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
+from lunarnav_ml.errors import ConfigError
 from lunarnav_ml.models.darknet import CSPDarknet, TinyDarknet
 from lunarnav_ml.models.pan import TinyFPN, YOLOv4PAN
 from lunarnav_ml.models.yolo import YOLO
@@ -81,9 +82,21 @@ def _depth(n: int, mult: float) -> int:
     return max(1, round(n * mult))
 
 
+def get_preset(preset: str) -> Preset:
+    """The :class:`Preset` of a name.
+
+    Raises:
+        ConfigError: not one of ``PRESETS``.
+    """
+    if not isinstance(preset, str) or preset not in PRESETS:
+        raise ConfigError(f"preset: unknown model preset {preset!r} "
+                          f"(known: {', '.join(PRESETS)})")
+    return PRESETS[preset]
+
+
 def default_anchors(preset: str) -> torch.Tensor:
     """The reference anchors of a preset, :math:`(L, 3, 2)` pixels."""
-    return torch.tensor(YOLOV4_TINY_ANCHORS if PRESETS[preset].tiny else YOLOV4_ANCHORS,
+    return torch.tensor(YOLOV4_TINY_ANCHORS if get_preset(preset).tiny else YOLOV4_ANCHORS,
                         dtype=torch.float32)
 
 
@@ -99,12 +112,13 @@ def build_model(preset: str = "nano", num_classes: int = 3, anchors=None) -> YOL
 
     Returns:
         A :class:`YOLO` module.
+
+    Raises:
+        ConfigError: an unknown preset or ``num_classes`` < 1.
     """
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
-    if num_classes < 1:
-        raise ValueError(f"num_classes must be >= 1, got {num_classes}")
-    cfg = PRESETS[preset]
+    cfg = get_preset(preset)
+    if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
+        raise ConfigError(f"num_classes: must be an integer >= 1, got {num_classes!r}")
     anchors = default_anchors(preset) if anchors is None else torch.as_tensor(
         anchors, dtype=torch.float32)
     if cfg.tiny:

@@ -132,23 +132,71 @@ def load_detector(path: str | Path, img_size: int | None = None) -> Detector:
     Args:
         img_size: network input side to run at (:meth:`Detector.set_img_size`); default the
             size recorded in the checkpoint (the training size).
+
+    Raises:
+        InputError: the file is unreadable, its settings are impossible (unknown preset,
+            class names that do not match ``num_classes``), its weights do not fit the model
+            or hold NaN or infinite values.
     """
     config, state = read_checkpoint(path)
     missing = [k for k in ("preset", "num_classes", "img_size") if config.get(k) is None]
     if missing:
         raise InputError(f"{path}: checkpoint lacks model settings {missing}")
-    model = build_model(config["preset"], config["num_classes"], config.get("anchors"))
     try:
-        model.load_state_dict(state)
-    except RuntimeError as err:
-        raise InputError(f"{path}: weights do not match preset {config['preset']!r}: {err}"
-                         ) from err
+        model = build_model(config["preset"], config["num_classes"], config.get("anchors"))
+    except (ConfigError, ValueError, TypeError) as err:
+        raise InputError(f"{path}: {_one_line(err)}") from err
+    _check_weights(path, model, state, config["preset"])
     # checkpoints from before the module recorded its names trained with the defaults
     names = config.get("class_names") or default_class_names(config["num_classes"])
-    detector = Detector(model, config["img_size"], names, config["preset"])
+    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+        raise InputError(f"{path}: class_names must be a list of names, got {names!r}")
+    if len(names) != config["num_classes"]:
+        raise InputError(f"{path}: {len(names)} class_names {list(names)} for num_classes "
+                         f"{config['num_classes']}")
+    detector = Detector(model, 32, names, config["preset"])
+    try:
+        detector.set_img_size(config["img_size"])
+    except ConfigError as err:
+        raise InputError(f"{path}: checkpoint {err}") from err
     if img_size is not None:
         detector.set_img_size(img_size)
     return detector
+
+
+def _check_weights(path: str | Path, model: YOLO, state: dict[str, torch.Tensor],
+                   preset: str) -> None:
+    """Load ``state`` into ``model``; one-line InputError naming the first keys that do not
+    fit, or the first tensor holding NaN or infinite values."""
+    odd = [k for k, v in state.items() if not isinstance(v, torch.Tensor)]
+    if odd:
+        raise InputError(f"{path}: weights hold a {type(state[odd[0]]).__name__} at {odd[0]}, "
+                         "not a tensor")
+    own = model.state_dict()
+    missing = [k for k in own if k not in state]
+    unexpected = [k for k in state if k not in own]
+    reshaped = [f"{k} {list(state[k].shape)} in the file, {list(own[k].shape)} in the model"
+                for k in own if k in state and state[k].shape != own[k].shape]
+    problems = [f"{what} {', '.join(keys[:3])}"
+                + (f" (and {len(keys) - 3} more)" if len(keys) > 3 else "")
+                for what, keys in (("missing", missing), ("unexpected", unexpected),
+                                   ("other shape:", reshaped)) if keys]
+    if problems:
+        raise InputError(f"{path}: weights do not match preset {preset!r}: "
+                         f"{'; '.join(problems)}")
+    for key, value in state.items():
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise InputError(f"{path}: weights hold NaN or infinite values (first in {key})")
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as err:
+        raise InputError(f"{path}: weights do not match preset {preset!r}: "
+                         f"{_one_line(err)}") from err
+
+
+def _one_line(err: BaseException) -> str:
+    """An exception's message with its line breaks and runs of blanks collapsed."""
+    return " ".join(str(err).split())
 
 
 def fit_detector(train_ann: str | Path | list, val_ann: str | Path, out_dir: str | Path, *,

@@ -9,12 +9,13 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from lunarnav_ml.errors import InputError
+from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.eval.predict import Predictor, coco_results
 from lunarnav_ml.utils import atomic
 from lunarnav_ml.utils.images import IMAGE_SUFFIXES, caption_tile, contact_sheet, read_rgb
 
 CLASS_COLORS_BGR = ((0, 200, 255), (255, 160, 0), (60, 60, 255))  # crater, rock, artifact
+DETECT_OUTPUTS = ("overlays", "results.json", "images.json", "gallery.png")  # what --out holds
 
 
 def list_images(source: Path) -> list[Path]:
@@ -53,12 +54,33 @@ def gallery_indices(n_files: int, n: int) -> set[int]:
     return {int(i) for i in np.linspace(0, n_files - 1, min(n, n_files)).round()}
 
 
+def check_out_dir(out_dir: Path, files: list[Path]) -> None:
+    """ConfigError when replacing ``out_dir`` with a new detection output would lose files:
+    a plain file, a folder holding the input images, or one holding what detect does not write.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: --out exists and is not a folder")
+    resolved = out.resolve()
+    for f in files:
+        if resolved in Path(f).resolve().parents:
+            raise ConfigError(f"{out}: --out holds the input image {f}; choose another folder")
+    if out.is_dir():
+        foreign = sorted(p.name for p in out.iterdir() if p.name not in DETECT_OUTPUTS)
+        if foreign:
+            raise ConfigError(f"{out}: --out holds files detect did not write ({foreign[0]}); "
+                              "give a new or empty folder, or an earlier detect output")
+
+
 def detect_files(detector: Predictor, files: list[Path], out_dir: Path, *, conf_thres: float,
                  iou_thres: float, overlay_thres: float, batch: int = 8, progress: bool = True,
                  gallery: int = 12) -> dict[str, Any]:
     """Detect on image files; write ``results.json`` (COCO results), ``images.json`` (ids to
     files), ``overlays/<stem>.jpg`` and, when ``gallery`` > 0, ``gallery.png`` (a contact sheet
     of up to ``gallery`` overlays spread over the files) under ``out_dir``.
+
+    The folder is built under a temporary name and replaces ``out_dir`` (an earlier detect
+    output) only when every image was read: a failure leaves ``out_dir`` as it was.
 
     Args:
         detector: the torch ``Detector``, the onboard runtime's ``OnnxDetector``, or either
@@ -67,26 +89,28 @@ def detect_files(detector: Predictor, files: list[Path], out_dir: Path, *, conf_
     Returns:
         ``{"images": [...], "results": [...]}`` as written.
     """
+    check_out_dir(out_dir, files)
     images_meta, results = [], []
     in_gallery, tiles = gallery_indices(len(files), gallery), []
     bar = tqdm(total=len(files), desc="detect", unit="img", disable=not progress)
-    for start in range(0, len(files), batch):
-        chunk = files[start:start + batch]
-        rgb = [read_rgb(f) for f in chunk]
-        preds = detector.predict(rgb, conf_thres=conf_thres, iou_thres=iou_thres)
-        ids = list(range(start + 1, start + 1 + len(chunk)))
-        results += coco_results(preds, ids)
-        for image_id, path, image, pred in zip(ids, chunk, rgb, preds):
-            images_meta.append({"id": image_id, "file_name": str(path),
-                                "width": image.shape[1], "height": image.shape[0]})
-            overlay = draw_overlay(image, pred, detector.class_names, overlay_thres)
-            atomic.write_image(out_dir / "overlays" / f"{path.stem}.jpg", overlay)
-            if image_id - 1 in in_gallery:
-                tiles.append(caption_tile(overlay, 320, path.name[:48]))
-        bar.update(len(chunk))
-    bar.close()
-    if tiles:
-        atomic.write_image(out_dir / "gallery.png", contact_sheet(tiles))
-    atomic.write_json(out_dir / "results.json", results, indent=None)
-    atomic.write_json(out_dir / "images.json", images_meta)
+    with atomic.atomic_dir(out_dir) as work:
+        for start in range(0, len(files), batch):
+            chunk = files[start:start + batch]
+            rgb = [read_rgb(f) for f in chunk]
+            preds = detector.predict(rgb, conf_thres=conf_thres, iou_thres=iou_thres)
+            ids = list(range(start + 1, start + 1 + len(chunk)))
+            results += coco_results(preds, ids)
+            for image_id, path, image, pred in zip(ids, chunk, rgb, preds):
+                images_meta.append({"id": image_id, "file_name": str(path),
+                                    "width": image.shape[1], "height": image.shape[0]})
+                overlay = draw_overlay(image, pred, detector.class_names, overlay_thres)
+                atomic.write_image(work / "overlays" / f"{path.stem}.jpg", overlay)
+                if image_id - 1 in in_gallery:
+                    tiles.append(caption_tile(overlay, 320, path.name[:48]))
+            bar.update(len(chunk))
+        bar.close()
+        if tiles:
+            atomic.write_image(work / "gallery.png", contact_sheet(tiles))
+        atomic.write_json(work / "results.json", results, indent=None)
+        atomic.write_json(work / "images.json", images_meta)
     return {"images": images_meta, "results": results}

@@ -17,7 +17,8 @@ from collections.abc import Sequence
 from lightning.pytorch.cli import LightningCLI
 
 from lunarnav_ml.data.datamodule import DetectionDataModule
-from lunarnav_ml.errors import REPORTED_ERRORS
+from lunarnav_ml.errors import REPORTED_ERRORS, InputError
+from lunarnav_ml.training.checkpoint import read_checkpoint
 from lunarnav_ml.training.module import DetectorModule
 from lunarnav_ml.utils.yamlfile import read_yaml
 
@@ -35,12 +36,47 @@ def run_cli(args: Sequence[str] | None = None, run: bool = True, prog: str | Non
     """Parse ``args`` (default: ``sys.argv``) and run the chosen Lightning subcommand."""
     # ``lunarnav train`` passes its own arguments on purpose; Lightning warns about that.
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
-    for path in config_files(sys.argv[1:] if args is None else args):
-        read_yaml(path, "config file")  # one-line ConfigError for a missing or malformed file
+    argv = sys.argv[1:] if args is None else args
+    configs = [read_yaml(path, "config file")  # one-line ConfigError for a missing or
+               for path in config_files(argv)]  # malformed file
+    ckpt = option_value(argv, "--ckpt_path")
+    if ckpt is None:  # the last config file that sets it wins, as in jsonargparse
+        ckpt = next((c["ckpt_path"] for c in reversed(configs)
+                     if isinstance(c, dict) and c.get("ckpt_path") is not None), None)
+    if ckpt is not None:
+        check_ckpt_path(str(ckpt))
     return DetectorCLI(DetectorModule, DetectionDataModule, args=list(args) if args is not None
                        else None, run=run, seed_everything_default=0,
                        save_config_kwargs={"overwrite": True},
                        parser_kwargs={"prog": prog} if prog else None)
+
+
+def option_value(args: Sequence[str], name: str) -> str | None:
+    """The last value given to option ``name`` (``name VALUE`` or ``name=VALUE``), or None."""
+    value = None
+    for k, arg in enumerate(args):
+        if arg == name and k + 1 < len(args):
+            value = args[k + 1]
+        elif arg.startswith(f"{name}="):
+            value = arg.split("=", 1)[1]
+    return value
+
+
+def check_ckpt_path(path: str) -> None:
+    """One-line InputError for a ``--ckpt_path`` that is missing or not a readable checkpoint,
+    before Lightning loads it (Lightning's own names such as ``last`` pass)."""
+    if str(path) in ("null", "last", "best", "hpc") or str(path).startswith("registry"):
+        return
+    read_checkpoint(path)
+    import torch
+
+    try:  # memory-mapped: the tensors are not read again
+        ckpt = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
+    except (RuntimeError, OSError):  # an older serialization format: Lightning reads it
+        return
+    if "pytorch-lightning_version" not in ckpt:
+        raise InputError(f"{path}: not a Lightning training checkpoint, so it cannot resume a "
+                         "run; start from its weights with --model.init_from")
 
 
 def config_files(args: Sequence[str]) -> list[str]:

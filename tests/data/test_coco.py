@@ -99,6 +99,7 @@ def test_dataset_is_deterministic_under_torch_seed(tiny_coco):
         assert torch.equal(ia, ib) and torch.equal(ta["boxes"], tb["boxes"])
 
 
-def test_img_size_must_be_multiple_of_32(tiny_coco):
-    with pytest.raises(InputError, match="multiple of 32"):
-        CocoDetection(tiny_coco["train"], img_size=100)
+@pytest.mark.parametrize("size", [100, 0, -32])
+def test_img_size_must_be_positive_multiple_of_32(tiny_coco, size):
+    with pytest.raises(InputError, match=f"positive multiple of 32, got {size}"):
+        CocoDetection(tiny_coco["train"], img_size=size)

@@ -134,3 +134,16 @@ def test_preload_names_a_corrupt_image(tiny_coco, tmp_path):
     ds.records[3] = dataclasses.replace(ds.records[3], path=bad)
     with pytest.raises(InputError, match="bad.png: corrupt"):
         ds.preload(threads=2)
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("img_size", 0, "data.img_size: must be a positive multiple of 32, got 0"),
+    ("img_size", -32, "data.img_size: must be a positive multiple of 32, got -32"),
+    ("img_size", 100, "data.img_size: must be a positive multiple of 32, got 100"),
+    ("batch_size", 0, "data.batch_size: must be an integer >= 1, got 0"),
+    ("num_workers", -1, "data.num_workers: must be an integer >= 0, got -1"),
+])
+def test_impossible_loader_settings_are_config_errors(field, value, message):
+    """Caught when the DataModule is built, not as a DataLoader ValueError at fit."""
+    with pytest.raises(ConfigError, match=message):
+        DetectionDataModule("train.json", "val.json", **{field: value})

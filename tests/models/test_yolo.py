@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from lunarnav_ml.models import PRESETS, build_model, count_parameters
+from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.models import PRESETS, build_model, count_parameters, default_anchors
 
 
 @pytest.mark.parametrize("size", [(64, 64), (96, 128)])
@@ -35,8 +36,12 @@ def test_full_yolov4_matches_reference_parameter_count():
 
 
 def test_bad_arguments_raise():
-    with pytest.raises(ValueError, match="unknown preset"):
+    with pytest.raises(ConfigError, match=r"preset: unknown model preset 'huge' \(known: nano, "):
         build_model("huge")
+    with pytest.raises(ConfigError, match="unknown model preset 'huge'"):
+        default_anchors("huge")
+    with pytest.raises(ConfigError, match="num_classes: must be an integer >= 1, got 0"):
+        build_model("nano", num_classes=0)
     with pytest.raises(ValueError, match="anchors"):
         build_model("nano", anchors=[[10, 10]])
     with pytest.raises(ValueError, match="multiples of 32"):

@@ -80,3 +80,59 @@ def test_checkpoint_without_names_gets_the_training_defaults(trained, tmp_path):
     det = load_detector(trained[0])
     path = save_slim(tmp_path / "old.pt", {**det.config, "class_names": None}, det.model)
     assert load_detector(path).class_names == ["crater", "rock", "artifact"]
+
+
+def _nano_slim(tmp_path, name="nano.pt", config=None, state=None):
+    """A slim file of an untrained nano detector, with config entries or weights replaced."""
+    from lunarnav_ml.models import build_model
+    from lunarnav_ml.training.api import Detector
+
+    model = build_model("nano", 3)
+    det = Detector(model, 64, ["crater", "rock", "artifact"], "nano")
+    path = save_slim(tmp_path / name, {**det.config, **(config or {})}, model)
+    if state is not None:
+        ckpt = torch.load(path, weights_only=False)
+        ckpt["state_dict"] = state(ckpt["state_dict"])
+        torch.save(ckpt, path)
+    return path
+
+
+def test_load_detector_names_a_bad_preset_in_one_line(tmp_path):
+    path = _nano_slim(tmp_path, config={"preset": "huge"})
+    with pytest.raises(InputError, match=r"nano.pt: preset: unknown model preset 'huge' \(known"):
+        load_detector(path)
+
+
+def test_load_detector_rejects_non_finite_weights(tmp_path):
+    def poison(state):
+        state["head.preds.1.weight"][0, 0, 0, 0] = float("nan")
+        state["head.preds.2.bias"][0] = float("inf")
+        return state
+
+    assert load_detector(_nano_slim(tmp_path)).img_size == 64
+    path = _nano_slim(tmp_path, "nan.pt", state=poison)
+    with pytest.raises(InputError, match=r"nan.pt: weights hold NaN or infinite values "
+                                         r"\(first in head.preds.1.weight\)"):
+        load_detector(path)
+
+
+def test_load_detector_rejects_class_names_that_miss_classes(tmp_path):
+    path = _nano_slim(tmp_path, config={"class_names": ["crater"]})
+    with pytest.raises(InputError, match=r"nano.pt: 1 class_names \['crater'\] for "
+                                         "num_classes 3"):
+        load_detector(path)
+
+
+def test_load_detector_names_mismatched_weights_in_one_line(tmp_path):
+    def reshape(state):
+        state["backbone.stem.0.weight"] = torch.zeros(3, 3)
+        del state["head.preds.0.bias"]
+        state["extra.weight"] = torch.zeros(1)
+        return state
+
+    with pytest.raises(InputError) as err:
+        load_detector(_nano_slim(tmp_path, state=reshape))
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{tmp_path / 'nano.pt'}: weights do not")
+    assert "missing head.preds.0.bias; unexpected extra.weight; other shape: " \
+           "backbone.stem.0.weight [3, 3] in the file, [" in message

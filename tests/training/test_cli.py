@@ -145,3 +145,55 @@ def test_single_image(weights, tmp_path):
                                  str(tmp_path / "o"), "--quiet"])
     assert args.func(args) == 0
     assert (tmp_path / "o" / "overlays" / "one.jpg").is_file()
+
+
+class _NoBoxes:
+    """A stand-in detector that finds nothing (detect_files needs predict and class_names)."""
+
+    class_names = ("crater", "rock", "artifact")
+
+    def predict(self, images, conf_thres, iou_thres):
+        return [{"boxes": np.zeros((0, 4), np.float32), "scores": np.zeros(0, np.float32),
+                 "labels": np.zeros(0, np.int64)} for _ in images]
+
+
+def _run(files, out, **kw):
+    return detect.detect_files(_NoBoxes(), files, out, conf_thres=0.1, iou_thres=0.5,
+                               overlay_thres=0.5, progress=False, **kw)
+
+
+def test_detect_output_is_all_or_nothing(tmp_path):
+    src = tmp_path / "src"
+    src.mkdir()
+    cv2.imwrite(str(src / "a.png"), np.full((40, 50), 99, np.uint8))
+    (src / "b.png").write_bytes(b"not a png")
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match="b.png: not a readable image"):
+        _run(detect.list_images(src), out, batch=1)  # b.png fails in the second batch
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["src"]
+    _run([src / "a.png"], out, gallery=2)
+    assert sorted(p.name for p in out.iterdir()) == ["gallery.png", "images.json", "overlays",
+                                                     "results.json"]
+    with pytest.raises(InputError, match="b.png"):  # a failed re-run keeps the old output
+        _run(detect.list_images(src), out, batch=1)
+    assert (out / "gallery.png").is_file() and (out / "overlays" / "a.jpg").is_file()
+    _run([src / "a.png"], out, gallery=0)  # a re-run replaces the output: no stale gallery
+    assert not (out / "gallery.png").exists() and (out / "results.json").is_file()
+
+
+def test_detect_will_not_replace_a_folder_it_did_not_write(tmp_path):
+    image = tmp_path / "a.png"
+    cv2.imwrite(str(image), np.full((40, 50), 99, np.uint8))
+    with pytest.raises(ConfigError, match="--out holds the input image"):
+        _run([image], tmp_path)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep")
+    with pytest.raises(ConfigError, match=r"other: --out holds files detect did not write "
+                                          r"\(notes.txt\)"):
+        _run([image], other)
+    afile = tmp_path / "afile"
+    afile.write_text("keep")
+    with pytest.raises(ConfigError, match="afile: --out exists and is not a folder"):
+        _run([image], afile)
+    assert (other / "notes.txt").read_text() == "keep" and afile.read_text() == "keep"

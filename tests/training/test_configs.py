@@ -84,3 +84,38 @@ def test_train_py_reports_a_malformed_config_in_one_line(tmp_path, capsys, flag)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1
     assert err[0].startswith(f"train.py: error: {bad}: not valid YAML")
+
+
+def test_bad_preset_and_loader_settings_are_config_errors(tiny_coco, tmp_path, monkeypatch):
+    from lunarnav_ml.errors import ConfigError
+
+    monkeypatch.chdir(tmp_path)
+    for extra, message in ((["--model.preset", "huge"], "unknown model preset 'huge'"),
+                           (["--data.img_size", "0"], "data.img_size: must be a positive"),
+                           (["--data.batch_size", "0"], "data.batch_size: must be an integer"),
+                           (["--data.num_workers", "-1"], "data.num_workers: must be an")):
+        with pytest.raises(ConfigError, match=message):
+            run_cli([*_data_args(tiny_coco), "--trainer.accelerator", "cpu", *extra], run=False)
+
+
+def test_train_py_checks_ckpt_path_before_lightning_loads_it(tiny_coco, tmp_path, monkeypatch,
+                                                           capsys):
+    from lunarnav_ml.models import build_model
+    from lunarnav_ml.training.checkpoint import save_slim
+    from lunarnav_ml.training.lightning_cli import main
+
+    monkeypatch.chdir(tmp_path)
+    trunc = tmp_path / "trunc.ckpt"
+    torch.save({"state_dict": {}, "hyper_parameters": {}}, trunc)
+    trunc.write_bytes(trunc.read_bytes()[:100])
+    slim = save_slim(tmp_path / "slim.pt", {"preset": "nano"}, build_model("nano"))
+    config = tmp_path / "resume.yaml"
+    config.write_text(f"ckpt_path: {trunc}\n")
+    for args, message in (
+            (["--ckpt_path", str(trunc)], f"{trunc}: not a readable checkpoint"),
+            ([f"--ckpt_path={tmp_path / 'nope.ckpt'}"], f"{tmp_path / 'nope.ckpt'}: checkpoint not"),
+            (["--config", str(config)], f"{trunc}: not a readable checkpoint"),
+            (["--ckpt_path", str(slim)], f"{slim}: not a Lightning training checkpoint")):
+        code = main(["fit", *_data_args(tiny_coco), "--trainer.accelerator", "cpu", *args])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and err[0].startswith(f"train.py: error: {message}")
