@@ -29,7 +29,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="checkpoint (.ckpt), slim weights (.pt) or an exported ONNX model (.onnx, "
                         f"run by the torch-free onboard runtime); default {DEFAULT_WEIGHTS}")
     p.add_argument("--threads", type=int, default=2, help="onnxruntime threads (.onnx weights)")
-    p.add_argument("--out", type=Path, default=Path("outputs/detect"), help="output folder")
+    p.add_argument("--out", type=Path, default=Path("outputs/detect"),
+                   help="output folder, replaced whole (an earlier detect output or a new folder)")
     p.add_argument("--conf", type=float, default=0.001, help="score threshold of results.json")
     p.add_argument("--iou", type=float, default=0.6, help="NMS IoU threshold")
     p.add_argument("--overlay-conf", type=float, default=0.25, help="score threshold drawn")
