@@ -27,12 +27,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, torch.T
         :class:`lunarnav_ml.models.YOLO`.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: checkpoint not found")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:
-        raise InputError(f"{path}: not a readable checkpoint ({err})") from err
+    ckpt = load_checkpoint_file(path)
     if isinstance(ckpt, dict) and ckpt.get("format") == SLIM_FORMAT:
         # weights stored in half precision come back as float32 (the model's dtype)
         return dict(ckpt["config"]), {k: v.float() if v.is_floating_point() else v
@@ -42,6 +37,17 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, torch.T
     hp = ckpt["hyper_parameters"]
     config = {k: hp.get(k) for k in CONFIG_KEYS}
     return config, _model_weights(path, ckpt["state_dict"])
+
+
+def load_checkpoint_file(path: str | Path) -> Any:
+    """The object a checkpoint file holds; ``InputError`` when it is missing or unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: checkpoint not found")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:
+        raise InputError(f"{path}: not a readable checkpoint ({err})") from err
 
 
 def _model_weights(path: Path, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

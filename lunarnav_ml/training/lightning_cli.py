@@ -18,7 +18,7 @@ from lightning.pytorch.cli import LightningCLI
 
 from lunarnav_ml.data.datamodule import DetectionDataModule
 from lunarnav_ml.errors import REPORTED_ERRORS, InputError
-from lunarnav_ml.training.checkpoint import read_checkpoint
+from lunarnav_ml.training.checkpoint import load_checkpoint_file
 from lunarnav_ml.training.module import DetectorModule
 from lunarnav_ml.utils.yamlfile import read_yaml
 
@@ -67,14 +67,8 @@ def check_ckpt_path(path: str) -> None:
     before Lightning loads it (Lightning's own names such as ``last`` pass)."""
     if str(path) in ("null", "last", "best", "hpc") or str(path).startswith("registry"):
         return
-    read_checkpoint(path)
-    import torch
-
-    try:  # memory-mapped: the tensors are not read again
-        ckpt = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
-    except (RuntimeError, OSError):  # an older serialization format: Lightning reads it
-        return
-    if "pytorch-lightning_version" not in ckpt:
+    ckpt = load_checkpoint_file(path)
+    if not isinstance(ckpt, dict) or "pytorch-lightning_version" not in ckpt:
         raise InputError(f"{path}: not a Lightning training checkpoint, so it cannot resume a "
                          "run; start from its weights with --model.init_from")
 
