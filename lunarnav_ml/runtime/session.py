@@ -70,12 +70,12 @@ def check_io(session: ort.InferenceSession, meta: md.ModelMetadata, path: Path) 
     outputs = {o.name: o for o in session.get_outputs()}
     decoded = outputs.get(md.DECODED_NAME)
     width = decoded.shape[-1] if decoded is not None and decoded.shape else None
-    if isinstance(width, int) and width > 5 and width != 5 + meta.num_classes:
-        n = meta.num_classes
-        raise InputError(f"{path}: metadata {md.PREFIX}class_names names {n} class"
-                         f"{'es' if n != 1 else ''} but output '{md.DECODED_NAME}' scores "
-                         f"{width - 5}")
-    if decoded is None or decoded.shape[-1] != 5 + meta.num_classes:
+    if width != 5 + meta.num_classes:
+        if isinstance(width, int) and width > 5:  # a graph that scores another class count
+            n = meta.num_classes
+            raise InputError(f"{path}: metadata {md.PREFIX}class_names names {n} class"
+                             f"{'es' if n != 1 else ''} but output '{md.DECODED_NAME}' scores "
+                             f"{width - 5}")
         raise InputError(f"{path}: expected output '{md.DECODED_NAME}' of shape (B, N, "
                          f"{5 + meta.num_classes}) for {meta.num_classes} classes, got "
                          f"{[(o.name, o.shape) for o in session.get_outputs()]}")

@@ -187,11 +187,7 @@ def _check_weights(path: str | Path, model: YOLO, state: dict[str, torch.Tensor]
     for key, value in state.items():
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
             raise InputError(f"{path}: weights hold NaN or infinite values (first in {key})")
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as err:
-        raise InputError(f"{path}: weights do not match preset {preset!r}: "
-                         f"{_one_line(err)}") from err
+    model.load_state_dict(state)
 
 
 def _one_line(err: BaseException) -> str:
