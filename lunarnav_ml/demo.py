@@ -114,8 +114,7 @@ def render_splits(cfg: DemoConfig, data_dir: Path, progress: bool) -> dict[str, 
 def run_demo(cfg: DemoConfig, out_dir: Path, progress: bool = True) -> dict[str, Any]:
     """Run the whole demo; the output folder appears complete or not at all."""
     cfg.validate()
-    atomic.check_destination(out_dir, folder=True)  # an --out in the way, found before rendering
-    with atomic.atomic_dir(out_dir) as work:
+    with atomic.atomic_dir(out_dir) as work:  # an --out in the way is refused before rendering
         summary = _run_in(cfg, work, progress)
     print(f"[demo] wrote {out_dir}", flush=True)
     return summary

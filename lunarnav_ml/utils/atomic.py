@@ -111,10 +111,10 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     Args:
         image: HxW (gray) or HxWx3 (BGR) array, uint8 or uint16.
     """
-    path = check_image_destination(path)
     import cv2
 
-    with atomic_path(path) as tmp:
+    path = _check_image_writer(Path(path))
+    with atomic_path(path) as tmp:  # checks the destination itself
         try:
             ok = cv2.imwrite(str(tmp), image)
         except cv2.error as err:  # OpenCV raises for some failures instead of returning False
@@ -129,9 +129,13 @@ def check_image_destination(path: str | os.PathLike) -> Path:
     """Check, before any work, that an image can be written to ``path``: OpenCV has a writer
     for its suffix and it is not a folder (:func:`check_destination`); ``InputError`` naming
     ``path`` otherwise."""
+    return _check_image_writer(check_destination(path))
+
+
+def _check_image_writer(path: Path) -> Path:
+    """``InputError`` naming ``path`` when OpenCV has no writer for its suffix."""
     import cv2
 
-    path = check_destination(path)
     if not cv2.haveImageWriter(str(path)):
         raise InputError(f"{path}: cannot write an image with suffix {path.suffix or '(none)'!r}"
                          " (use .png or .jpg)")
