@@ -170,7 +170,7 @@ def candidate_rows(detector: Detector, gt: dict[str, Any], root: Path) -> list[t
             boxes = torch.from_numpy(info.to_original(
                 box_convert(cand[:, :4], "cxcywh", "xyxy").numpy(), image.shape[1],
                 image.shape[0])).double()
-            score = cand[:, 4] * cand[:, 5:].max(dim=1).values
+            score = (cand[:, 4] * cand[:, 5:].max(dim=1).values).double()
             truth = xyxy(labels)
             iou = box_iou(truth, boxes)  # (G, N)
             for a, t, row in zip(labels, truth, iou):
@@ -179,7 +179,7 @@ def candidate_rows(detector: Detector, gt: dict[str, Any], root: Path) -> list[t
                 if not ok.any():
                     rows.append(head + (np.nan,) * 8)
                     continue
-                i = int(torch.where(ok, score.double(), -1.0).argmax())
+                i = int(torch.where(ok, score, -1.0).argmax())
                 wh = (t[2:] - t[:2]).repeat(2)
                 edges = ((boxes[i] - t) / wh).tolist()
                 rows.append(head + (float(cand[i, 4]), float(cand[i, 5 + CRATER - 1]),
