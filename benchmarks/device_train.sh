@@ -18,7 +18,8 @@
 # Session 31 (H200, BUDGET_S=570, the loader and loss fixes): 1,597 steps in 4 min 58 s.
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
-# PY (default python3), EXTRA (more `train.py fit` arguments, e.g. for a CPU smoke run).
+# PY (default python3), EXTRA (more `train.py fit` arguments for both runs, e.g. for a CPU smoke
+# run), TRAIN_ARGS (more arguments for the real run only, e.g. other --data.weights).
 set -euo pipefail
 t0=$(date +%s)
 BUDGET_S=${BUDGET_S:-540}
@@ -90,7 +91,7 @@ left=$((BUDGET_S - ($(date +%s) - t0) - 60))  # a minute for start-up, the last 
 max_time=$(printf '00:00:%02d:%02d' $((left / 60)) $((left % 60)))
 log "train, max_time $max_time"
 "$PY" train.py fit --config configs/small_relu_gpu.yaml --data.num_workers $((WORKERS - 2)) \
-    --trainer.max_time "$max_time" --trainer.enable_progress_bar false ${EXTRA:-} \
+    --trainer.max_time "$max_time" --trainer.enable_progress_bar false ${EXTRA:-} ${TRAIN_ARGS:-} \
     >"$OUT/train.txt" 2>&1 || { log "training failed"; tail -n 30 "$OUT/train.txt"; }
 log "export"
 "$PY" - "$RUN" "$OUT" <<'EOF' 2>&1 | tee -a "$OUT/log.txt"
