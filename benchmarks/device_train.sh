@@ -16,6 +16,8 @@
 # The working tree travels too: it must stay under the device's 64 MiB with that folder.
 # Session 30 (H200, BUDGET_S=560): rendering 168 s, training 5 min 17 s, 878 steps.
 # Session 31 (H200, BUDGET_S=570, the loader and loss fixes): 1,597 steps in 4 min 58 s.
+# Session 43 (H100, BUDGET_S=565, the real cameras' renders at 0.35): rendering 270 s, training
+# 3 min 34 s, 891 steps (the shipped small.pt since).
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
 # PY (default python3), EXTRA (more `train.py fit` arguments for both runs, e.g. for a CPU smoke
