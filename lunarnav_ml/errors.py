@@ -13,6 +13,12 @@ class ConfigError(LunarNavError):
     """A bad configuration: an unknown key or an impossible value."""
 
 
+def one_line(err: BaseException) -> str:
+    """An exception's message with its line breaks and runs of blanks collapsed (PyYAML's and
+    PyTorch's messages span lines; a command line reports one)."""
+    return " ".join(str(err).split())
+
+
 # What a command line reports in one line: ours, a path that is missing or of the wrong kind,
 # and one that cannot be written (a read-only folder, a folder wanted where a file is).
 REPORTED_ERRORS = (LunarNavError, FileNotFoundError, NotADirectoryError, IsADirectoryError,

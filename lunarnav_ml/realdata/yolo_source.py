@@ -14,7 +14,7 @@ from typing import Any
 
 import yaml
 
-from lunarnav_ml.errors import InputError
+from lunarnav_ml.errors import InputError, one_line
 from lunarnav_ml.realdata.category_map import CategoryMap
 from lunarnav_ml.realdata.convert import SplitLabels, image_size
 from lunarnav_ml.realdata.sources import original_name
@@ -58,9 +58,8 @@ def _names_from(path: Path) -> dict[int, str]:
         try:
             names = (yaml.safe_load(text) or {}).get("names")
         except (yaml.YAMLError, AttributeError) as err:
-            detail = " ".join(str(err).split())  # PyYAML's message spans lines: one line here
-            raise InputError(f"{path}: not a YAML mapping with a 'names' entry ({detail})"
-                             ) from None
+            raise InputError(f"{path}: not a YAML mapping with a 'names' entry "
+                             f"({one_line(err)})") from None
         if isinstance(names, list):
             return {i: str(n) for i, n in enumerate(names)}
         if isinstance(names, dict) and all(isinstance(i, int) for i in names):

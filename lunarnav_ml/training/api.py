@@ -12,7 +12,7 @@ import torch
 
 from lunarnav_ml.data.coco import default_class_names
 from lunarnav_ml.data.letterbox import LetterboxInfo, letterbox
-from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.errors import ConfigError, InputError, one_line
 from lunarnav_ml.models import YOLO, build_model, decode, postprocess
 from lunarnav_ml.training.checkpoint import read_checkpoint, save_slim
 
@@ -145,7 +145,7 @@ def load_detector(path: str | Path, img_size: int | None = None) -> Detector:
     try:
         model = build_model(config["preset"], config["num_classes"], config.get("anchors"))
     except (ConfigError, ValueError, TypeError) as err:
-        raise InputError(f"{path}: {_one_line(err)}") from err
+        raise InputError(f"{path}: {one_line(err)}") from err
     _check_weights(path, model, state, config["preset"])
     # checkpoints from before the module recorded its names trained with the defaults
     names = config.get("class_names") or default_class_names(config["num_classes"])
@@ -188,11 +188,6 @@ def _check_weights(path: str | Path, model: YOLO, state: dict[str, torch.Tensor]
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
             raise InputError(f"{path}: weights hold NaN or infinite values (first in {key})")
     model.load_state_dict(state)
-
-
-def _one_line(err: BaseException) -> str:
-    """An exception's message with its line breaks and runs of blanks collapsed."""
-    return " ".join(str(err).split())
 
 
 def fit_detector(train_ann: str | Path | list, val_ann: str | Path, out_dir: str | Path, *,

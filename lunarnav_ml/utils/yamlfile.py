@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.errors import ConfigError, one_line
 
 
 def read_yaml(path: str | Path, what: str = "YAML file") -> Any:
@@ -18,5 +18,4 @@ def read_yaml(path: str | Path, what: str = "YAML file") -> Any:
     try:
         return yaml.safe_load(path.read_text())
     except yaml.YAMLError as err:
-        detail = " ".join(str(err).split())  # PyYAML's message spans lines: one line here
-        raise ConfigError(f"{path}: not valid YAML ({detail})") from None
+        raise ConfigError(f"{path}: not valid YAML ({one_line(err)})") from None
