@@ -65,7 +65,7 @@ def read_camera(path: Path) -> dict[str, float]:
 def run_localize(args: argparse.Namespace) -> int:
     """Localize the pair's craters; write ``craters3d.json`` and ``overlay.jpg``."""
     from lunarnav_ml.eval.cli import load_predictor
-    from lunarnav_ml.geometry.frames import StereoRig, check_principal_point
+    from lunarnav_ml.geometry.frames import StereoRig
     from lunarnav_ml.geometry.stereo import SGBMStereo
     from lunarnav_ml.runtime.craters3d import StereoCraterLocalizer
     from lunarnav_ml.utils import atomic
@@ -77,18 +77,14 @@ def run_localize(args: argparse.Namespace) -> int:
     if args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
     camera = read_camera(args.camera)
-    try:
-        rig = StereoRig.from_camera_record(camera)
-    except InputError as err:
-        raise InputError(f"{args.camera}: {err}") from None
     left, right = read_rgb(args.left), read_rgb(args.right)
     if left.shape != right.shape:
         raise InputError(f"{args.right}: {right.shape[1]}x{right.shape[0]} px, but the left "
                          f"image is {left.shape[1]}x{left.shape[0]}")
-    try:
-        check_principal_point(rig, left.shape[1], left.shape[0])
+    try:  # the record's values, and its principal point inside the images
+        rig = StereoRig.from_camera_record(camera, image_size=(left.shape[1], left.shape[0]))
     except InputError as err:
-        raise InputError(f"{args.camera}: {err} ({args.left})") from None
+        raise InputError(f"{args.camera}: {err}") from None
     weights = args.weights or DEFAULT_WEIGHTS
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
