@@ -50,26 +50,34 @@ def read_curve(files: list[Path], metric: str) -> list[tuple[int, float]]:
     """(step, value) of every logged, finite value of ``metric`` across the files, in order."""
     points, seen = [], False
     for path in files:
-        with open(path, newline="") as fh:
-            reader = csv.DictReader(fh)
-            if not reader.fieldnames or "step" not in reader.fieldnames:
-                raise InputError(f"{path}: not a Lightning metrics.csv (no 'step' column)")
-            if metric not in reader.fieldnames:
-                continue
-            seen = True
-            for line, row in enumerate(reader, start=2):
-                if not row.get(metric):
-                    continue
-                try:
-                    step, value = int(float(row["step"])), float(row[metric])
-                except (TypeError, ValueError):
-                    raise InputError(f"{path}, line {line}: step {row.get('step')!r} or "
-                                     f"{metric} {row[metric]!r} is not a number") from None
-                if math.isfinite(value):
-                    points.append((step, value))
+        try:
+            seen |= _read_file(path, metric, points)
+        except (UnicodeDecodeError, csv.Error) as err:
+            raise InputError(f"{path}: not a readable CSV file ({err})") from None
     if not seen:
         raise InputError(f"{files[0]}: no column {metric!r}")
     return points
+
+
+def _read_file(path: Path, metric: str, points: list[tuple[int, float]]) -> bool:
+    """Append ``path``'s finite values of ``metric`` to ``points``; whether it has the column."""
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        if not reader.fieldnames or "step" not in reader.fieldnames:
+            raise InputError(f"{path}: not a Lightning metrics.csv (no 'step' column)")
+        if metric not in reader.fieldnames:
+            return False
+        for line, row in enumerate(reader, start=2):
+            if not row.get(metric):
+                continue
+            try:
+                step, value = int(float(row["step"])), float(row[metric])
+            except (TypeError, ValueError):
+                raise InputError(f"{path}, line {line}: step {row.get('step')!r} or "
+                                 f"{metric} {row[metric]!r} is not a number") from None
+            if math.isfinite(value):
+                points.append((step, value))
+    return True
 
 
 def summarize(points: list[tuple[int, float]]) -> dict:

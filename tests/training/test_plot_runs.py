@@ -61,6 +61,17 @@ def test_bad_logs_are_named(tmp_path, body, needle):
         plot_runs.read_curve(plot_runs.metrics_files(run), "val/AP50")
 
 
+@pytest.mark.parametrize("data, needle", [
+    (b"\xff\xfe\x00garbage\x9c", "not a readable CSV"),
+    (b"", "no 'step' column"),
+])
+def test_foreign_files_are_named(tmp_path, data, needle):
+    path = tmp_path / "metrics.csv"
+    path.write_bytes(data)
+    with pytest.raises(InputError, match=needle):
+        plot_runs.read_curve(plot_runs.metrics_files(path), "val/AP50")
+
+
 def test_main_reports_one_line_and_writes_nothing(tmp_path, capsys):
     run = _run(tmp_path / "r", {0: "0,99,,0.2,0.3\n"})
     out = tmp_path / "c.png"
