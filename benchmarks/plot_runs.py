@@ -48,36 +48,44 @@ def metrics_files(run: str | Path) -> list[Path]:
 
 def read_curve(files: list[Path], metric: str) -> list[tuple[int, float]]:
     """(step, value) of every logged, finite value of ``metric`` across the files, in order."""
-    points, seen = [], False
+    return read_curves(files, [metric])[metric]
+
+
+def read_curves(files: list[Path], metrics: list[str]) -> dict[str, list[tuple[int, float]]]:
+    """Each metric's (step, value) points across the files, each file read once."""
+    curves: dict[str, list[tuple[int, float]]] = {m: [] for m in metrics}
+    seen: set[str] = set()
     for path in files:
         try:
-            seen |= _read_file(path, metric, points)
+            seen |= _read_file(path, curves)
         except (UnicodeDecodeError, csv.Error) as err:
             raise InputError(f"{path}: not a readable CSV file ({err})") from None
-    if not seen:
-        raise InputError(f"{files[0]}: no column {metric!r}")
-    return points
+    for metric in metrics:
+        if metric not in seen:
+            raise InputError(f"{files[0]}: no column {metric!r}")
+    return curves
 
 
-def _read_file(path: Path, metric: str, points: list[tuple[int, float]]) -> bool:
-    """Append ``path``'s finite values of ``metric`` to ``points``; whether it has the column."""
+def _read_file(path: Path, curves: dict[str, list[tuple[int, float]]]) -> set[str]:
+    """Append ``path``'s finite values of each metric in ``curves`` to its points; return the
+    metrics the file has a column for."""
     with open(path, newline="") as fh:
         reader = csv.DictReader(fh)
         if not reader.fieldnames or "step" not in reader.fieldnames:
             raise InputError(f"{path}: not a Lightning metrics.csv (no 'step' column)")
-        if metric not in reader.fieldnames:
-            return False
+        present = set(curves) & set(reader.fieldnames)
         for line, row in enumerate(reader, start=2):
-            if not row.get(metric):
-                continue
-            try:
-                step, value = int(float(row["step"])), float(row[metric])
-            except (TypeError, ValueError):
-                raise InputError(f"{path}, line {line}: step {row.get('step')!r} or "
-                                 f"{metric} {row[metric]!r} is not a number") from None
-            if math.isfinite(value):
-                points.append((step, value))
-    return True
+            for metric in present:
+                if not row.get(metric):
+                    continue
+                try:
+                    step, value = int(float(row["step"])), float(row[metric])
+                except (TypeError, ValueError):
+                    raise InputError(f"{path}, line {line}: step {row.get('step')!r} or "
+                                     f"{metric} {row[metric]!r} is not a number") from None
+                if math.isfinite(value):
+                    curves[metric].append((step, value))
+    return present
 
 
 def summarize(points: list[tuple[int, float]]) -> dict:
@@ -99,12 +107,11 @@ def plot_runs(runs: list[str | Path], labels: list[str], metrics: list[str],
     import matplotlib.pyplot as plt
 
     atomic.check_image_destination(out)
-    curves = {(i, metric): read_curve(metrics_files(run), metric)
-              for i, run in enumerate(runs) for metric in metrics}
+    curves = [read_curves(metrics_files(run), metrics) for run in runs]
     fig, axes = plt.subplots(1, len(metrics), figsize=(5.5 * len(metrics), 4), squeeze=False)
     for ax, metric in zip(axes[0], metrics):
         for i, label in enumerate(labels):
-            points = curves[(i, metric)]
+            points = curves[i][metric]
             ax.plot([p[0] for p in points], [p[1] for p in points], label=label)
         ax.set_xlabel("step")
         ax.set_title(metric)
@@ -113,7 +120,7 @@ def plot_runs(runs: list[str | Path], labels: list[str], metrics: list[str],
     fig.tight_layout()
     atomic.write_figure(out, fig)
     return [{"run": str(run), "label": label, "metric": metric,
-             **summarize(curves[(i, metric)])}
+             **summarize(curves[i][metric])}
             for i, (run, label) in enumerate(zip(runs, labels)) for metric in metrics]
 
 
