@@ -68,6 +68,8 @@ class CraterConfig:
     near_camera_boost: Range = _f((2, 5), 0, 50, "extra craters of 2-20 m placed ahead")
     near_camera_range_m: Range = _f((4.0, 35.0), 0.5, 500.0,
                                     "near-rim distance of the extra craters (uniform), m")
+    crest_at_rim: bool = _f(False, doc="move each smoothed profile's crest onto the labelled "
+                                       "rim (off: degraded crests lie at 1.1-1.4 radii)")
 
 
 @dataclass
@@ -305,6 +307,10 @@ def _check_value(key: str, value: Any, f: dataclasses.Field) -> None:
     if _is_names(f):
         if not isinstance(value, tuple) or not all(isinstance(v, str) for v in value):
             raise ConfigError(f"'{key}' must be a list of names, got {value!r}")
+        return
+    if isinstance(_default(f), bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"'{key}' must be true or false, got {value!r}")
         return
     values = _numbers(key, value, ranged=_is_range(f), integer=type(_default(f)) is int)
     lo, hi = f.metadata.get("lo"), f.metadata.get("hi")

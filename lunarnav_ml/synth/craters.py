@@ -19,6 +19,7 @@ import numpy as np
 
 R_MAX = 2.5  # profile support, crater radii (ejecta at 2.5 R is 6 % of the rim height)
 N_TABLE = 301  # profile samples over [0, R_MAX]
+_RADII = np.linspace(0.0, R_MAX, N_TABLE)  # the profile table's radii, crater radii
 BOWL_SAMPLES = 64  # points over a crater's bowl for :func:`surviving_bowl`
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
@@ -52,24 +53,40 @@ class Crater:
 
 
 def profile_table(diameter: float, depth_ratio: float, rim_ratio: float,
-                  degradation: float) -> np.ndarray:
+                  degradation: float, crest_at_rim: bool = False) -> np.ndarray:
     """Radial height profile (N_TABLE,) over r = 0..R_MAX radii, m relative to the datum.
 
     Interior: floor + (rim - floor) * (0.4 r^2 + 0.6 r^3); exterior: rim * r^-3 tapered to 0 at
     R_MAX; then a Gaussian smoothing of width 0.03 + 0.3 * degradation radii (degradation
     quantized to 1/64). The profile is linear in (floor, rim), so it is a combination of two
-    cached smoothed basis profiles.
+    cached smoothed basis profiles. The smoothing moves the crest outward (1.03 radii fresh, 1.4
+    degraded); ``crest_at_rim`` rescales the profile radially so that its crest lies at one
+    radius, where the labels put the rim (DESIGN.md: the box of the projected rim crest).
     """
     rim = rim_ratio * diameter
     floor = rim - depth_ratio * diameter
     b_floor, b_rim = _basis(round(float(np.clip(degradation, 0.0, 1.0)) * 64))
-    return floor * b_floor + rim * b_rim
+    table = floor * b_floor + rim * b_rim
+    if crest_at_rim:
+        table = np.interp(_RADII * crest_radius(table), _RADII, table)
+    return table
+
+
+def crest_radius(table: np.ndarray) -> float:
+    """Radius of a profile's crest, radii: its highest point between 0.8 and 2 radii, refined
+    by a parabola through the three samples around it."""
+    lo, hi = np.searchsorted(_RADII, (0.8, 2.0))
+    i = lo + int(np.argmax(table[lo:hi]))
+    a, b, c = table[i - 1], table[i], table[i + 1]
+    curv = a - 2 * b + c
+    shift = 0.5 * (a - c) / curv if curv < 0 else 0.0
+    return float(_RADII[i] + shift * (_RADII[1] - _RADII[0]))
 
 
 @functools.lru_cache(maxsize=65)
 def _basis(level: int) -> tuple[np.ndarray, np.ndarray]:
     """Smoothed unit profiles (floor part, rim part) for degradation level / 64."""
-    r = np.linspace(0.0, R_MAX, N_TABLE)
+    r = _RADII
     q = 0.4 * r**2 + 0.6 * r**3
     taper = np.clip((R_MAX - r) / (R_MAX - 2.0), 0.0, 1.0) ** 2
     inside = r < 1.0
@@ -90,9 +107,10 @@ def _basis(level: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def make_crater(x: float, y: float, diameter: float, degradation: float,
-                depth_ratio: float, rim_ratio: float) -> Crater:
-    """Build a crater and measure its rendered depth and rim height from the profile."""
-    table = profile_table(diameter, depth_ratio, rim_ratio, degradation)
+                depth_ratio: float, rim_ratio: float, crest_at_rim: bool = False) -> Crater:
+    """Build a crater and measure its rendered depth and rim height from the profile
+    (``crest_at_rim``: :func:`profile_table`)."""
+    table = profile_table(diameter, depth_ratio, rim_ratio, degradation, crest_at_rim)
     rim_idx = round((N_TABLE - 1) / R_MAX)
     crest = float(table[max(0, rim_idx - 20): rim_idx + 20].max())
     return Crater(x, y, diameter, depth_ratio, rim_ratio, degradation, table,

@@ -175,10 +175,10 @@ def _crater_population(ts: TerrainSpec, cfg: SynthConfig, rng: np.random.Generat
             continue
         deg, dd, rim = C.sample_morphology(rng, ts.fresh_fraction, cc.depth_ratio_fresh,
                                            cc.depth_ratio_degraded, cc.rim_ratio_fresh)
-        out.append(C.make_crater(float(x), float(y), float(d), deg, dd, rim))
+        out.append(C.make_crater(float(x), float(y), float(d), deg, dd, rim, cc.crest_at_rim))
     out.sort(key=lambda c: -c.degradation)  # degraded (old) first, fresh overprint them
-    out += [C.make_crater(t.x, t.y, t.diameter, t.degradation, t.depth_ratio, t.rim_ratio)
-            for t in ts.targets]
+    out += [C.make_crater(t.x, t.y, t.diameter, t.degradation, t.depth_ratio, t.rim_ratio,
+                          cc.crest_at_rim) for t in ts.targets]
     return out
 
 

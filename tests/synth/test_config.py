@@ -25,6 +25,7 @@ def test_defaults_are_valid():
     ({"artifacts": {"kinds": ["ufo"]}}, "ufo"),
     ({"camera": {"fov_deg": "wide"}}, "camera.fov_deg"),
     ({"terrain": {"extent_m": 40.0}}, "craters.max_diameter_m"),
+    ({"craters": {"crest_at_rim": 1}}, "craters.crest_at_rim"),
 ])
 def test_bad_values_name_the_key(data, needle):
     with pytest.raises(ConfigError, match=needle.replace(".", r"\.")):
