@@ -74,12 +74,14 @@ def profile_table(diameter: float, depth_ratio: float, rim_ratio: float,
 
 def crest_radius(table: np.ndarray) -> float:
     """Radius of a profile's crest, radii: its highest point between 0.8 and 2 radii, refined
-    by a parabola through the three samples around it."""
+    by a parabola through the three samples around it; 1.0 when that point is no peak (a
+    crater without a raised rim has no crest to move)."""
     lo, hi = np.searchsorted(_RADII, (0.8, 2.0))
     i = lo + int(np.argmax(table[lo:hi]))
     a, b, c = table[i - 1], table[i], table[i + 1]
-    curv = a - 2 * b + c
-    shift = 0.5 * (a - c) / curv if curv < 0 else 0.0
+    if not (b > a and b > c):
+        return 1.0
+    shift = 0.5 * (a - c) / (a - 2 * b + c)
     return float(_RADII[i] + shift * (_RADII[1] - _RADII[0]))
 
 

@@ -27,6 +27,10 @@ def test_crest_at_rim_puts_the_crest_on_the_labelled_rim(deg, dd, rim):
 def test_crest_radius_finds_a_known_peak():
     r = np.linspace(0.0, C.R_MAX, C.N_TABLE)
     assert C.crest_radius(-((r - 1.234) ** 2)) == pytest.approx(1.234, abs=1e-6)
+    # no raised rim, no crest: the profile is left where it is
+    flat = C.profile_table(6.0, 0.2, 0.0, 0.0)
+    assert C.crest_radius(flat) == 1.0
+    assert np.array_equal(C.profile_table(6.0, 0.2, 0.0, 0.0, crest_at_rim=True), flat)
 
 
 def test_crest_at_rim_reaches_the_rendered_ground(small_cfg):
