@@ -13,6 +13,7 @@ around the label box with a margin of half its width and drawn with the box in g
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from pathlib import Path
 from typing import Any
@@ -90,13 +91,14 @@ def crest_pairs(first: str | Path, second: str | Path, out: str | Path, n: int,
     if not rows:
         raise InputError(f"{first}: no countable crater passes the filters")
     second_by_image = craters_by_image(data[1])
+    read = functools.lru_cache(maxsize=8)(read_rgb)  # several craters may share a frame
     tiles = []
     for name, ann in rows:
         twin = match(ann, second_by_image.get(name, []))
         if twin is None:
             continue
         for root, a, label in zip(paths, (ann, twin), labels):
-            image = read_rgb(root.parent / name)
+            image = read(root.parent / name)
             caption = (f"{label} D {a['diameter_m']:.1f} m deg {a['degradation']:.2f} "
                        f"near {a['near_rim_range_m']:.0f} m")
             tiles.append(caption_tile(crop(image, a["bbox"]), TILE, caption))
