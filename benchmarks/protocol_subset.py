@@ -13,6 +13,8 @@ With ``--render`` only the half's items are rendered first (the same bytes as in
 render with that seed; 896 pairs at 1024 px take about 25 min on 2 cores):
 
     .venv/bin/python benchmarks/protocol_subset.py /tmp/ps1024 --render --size 1024
+
+``--config`` renders with other scene settings (e.g. ``configs/synth/crest_at_rim.yaml``).
 """
 
 from __future__ import annotations
@@ -40,13 +42,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", type=int, default=1024, help="with --render: image side, px")
     p.add_argument("--seed", type=int, default=0, help="with --render: master seed")
     p.add_argument("--workers", type=int, default=2, help="with --render: processes")
+    p.add_argument("--config", type=Path, default=None,
+                   help="with --render: scene settings YAML (default: the defaults)")
     args = p.parse_args(argv)
     try:
         if args.render:
+            from lunarnav_ml.synth.config import SynthConfig
             from lunarnav_ml.synth.generate import generate_dataset
             from lunarnav_ml.synth.protocols import grid
 
-            path = generate_dataset(args.root, seed=args.seed, image_size=args.size,
+            cfg = SynthConfig.from_yaml(args.config) if args.config else None
+            path = generate_dataset(args.root, seed=args.seed, image_size=args.size, config=cfg,
                                     protocol=args.protocol, workers=args.workers,
                                     items=[k for k in range(len(grid(args.protocol))) if in_half(k)])
         else:
