@@ -103,6 +103,11 @@ class LidarConfig:
             level model predicts, and the placement slid toward the sensor to hide the returns
             from its shadow. On development renders it narrowed the 3-sigma error of 5 m
             craters on six of eight renders and of 7 m craters (BENCHMARKS.md, issue 6).
+        model_width: the model's diameter as a fraction of the map diameter (the reported
+            diameter stays the map's). The map gives the rim crest's diameter; a degraded
+            crater's smoothed bowl is narrower than the sharp model with its crest there, so a
+            model sized to the bowl places it better (chosen on development renders,
+            BENCHMARKS.md issue 6).
     """
 
     roi_m: float = 45.0
@@ -136,6 +141,12 @@ class LidarConfig:
     min_shadow_expected: int = 10
     tilted_ground: bool = True
     plane_sight: bool = True
+    model_width: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.model_width) and 0.5 <= self.model_width <= 1.5):
+            raise InputError(f"model_width: expected a fraction of the map diameter in "
+                             f"[0.5, 1.5], got {self.model_width}")
 
 
 @dataclass(frozen=True)
@@ -483,7 +494,7 @@ def fit_model(
     Returns:
         best center (3,) in the ground frame (m, z = rim crest) and its score.
     """
-    profile = map_profile(mc)
+    profile = map_profile(mc, cfg.model_width)
     center = np.asarray(center_xy, float)[:2]
     ground, model = sighted_model(scene, mc, center, cfg)
     half = (max(cfg.search_min_m, cfg.search_frac * mc.diameter_m) if half_width_m is None
@@ -497,24 +508,28 @@ def fit_model(
     return np.array([*center, plane_z(ground, center) + float(profile.rim_height_m)]), score
 
 
-def map_profile(mc: MapCrater) -> CraterProfile:
-    """The parametric model of a map crater (floor depth = crest-to-floor depth - rim)."""
+def map_profile(mc: MapCrater, width: float = 1.0) -> CraterProfile:
+    """The parametric model of a map crater (floor depth = crest-to-floor depth - rim), its
+    diameter ``width`` times the map's (``LidarConfig.model_width``)."""
     rim = RIM_RATIO * mc.diameter_m if mc.rim_height_m is None else mc.rim_height_m
-    return CraterProfile(mc.diameter_m, max(mc.depth_m - rim, 0.0), rim)
+    return CraterProfile(width * mc.diameter_m, max(mc.depth_m - rim, 0.0), rim)
 
 
-def map_model(mc: MapCrater, center_xy: np.ndarray, sensor_h: float) -> ModelPoints:
-    """The map crater's model sampled every D / 50 (at least 0.1 m), its points classified as
-    seen from the sensor with the crater at ``center_xy`` (ground frame, m)."""
-    return ModelPoints.build(map_profile(mc), max(0.1, mc.diameter_m / 50.0), center_xy, sensor_h)
+def map_model(mc: MapCrater, center_xy: np.ndarray, sensor_h: float,
+              width: float = 1.0) -> ModelPoints:
+    """The map crater's model (:func:`map_profile`) sampled every D / 50 (at least 0.1 m), its
+    points classified as seen from the sensor with the crater at ``center_xy`` (ground frame,
+    m)."""
+    return ModelPoints.build(map_profile(mc, width), max(0.1, mc.diameter_m / 50.0), center_xy,
+                             sensor_h)
 
 
 def sighted_model(scene: _Scene, mc: MapCrater, center_xy: np.ndarray,
                   cfg: LidarConfig) -> tuple[np.ndarray, ModelPoints]:
     """The local ground at ``center_xy`` (:func:`local_ground`, (a, b, c)) and the map
     crater's model there, its sight lines set from that ground (:func:`sight_height`)."""
-    ground = local_ground(scene, map_profile(mc), center_xy, cfg.tilted_ground)
-    return ground, map_model(mc, center_xy, sight_height(scene, ground, cfg))
+    ground = local_ground(scene, map_profile(mc, cfg.model_width), center_xy, cfg.tilted_ground)
+    return ground, map_model(mc, center_xy, sight_height(scene, ground, cfg), cfg.model_width)
 
 
 def local_ground(scene: _Scene, profile: CraterProfile, center_xy: np.ndarray,

@@ -191,3 +191,21 @@ def test_bad_input_raises():
         L.detect_craters_lidar(np.zeros((10, 2)))
     with pytest.raises(InputError, match="sensor_origin"):
         L.detect_craters_lidar(np.zeros((10, 3)), sensor_origin=(0.0, np.nan, 1.5))
+
+
+def test_model_width_sizes_the_model_to_a_narrower_bowl():
+    """A crater whose bowl is 0.9 of the map's diameter: the full-width model slides toward the
+    sensor, a model of 0.9 the width lands on it, and the map's diameter is reported."""
+    center = np.array((14.0, 2.0))
+    scan = simulate_lidar(AnalyticScene([CraterSpec(tuple(center), CraterProfile(4.5, 1.0, 0.2))]),
+                          range_noise_m=0.01, rng=3)
+    prior = L.MapCrater((center[0] + 0.5, center[1] - 0.5), 5.0, 1.2, 0.2)
+    err = {}
+    for w in (1.0, 0.9):
+        (det,) = L.detect_craters_lidar(scan, map_craters=[prior],
+                                        config=L.LidarConfig(model_width=w))
+        err[w] = float(np.hypot(*(det.center_m[:2] - center)))
+        assert det.diameter_m == 5.0
+    assert err[0.9] < 0.12 and err[1.0] > 0.2
+    with pytest.raises(InputError, match="model_width"):
+        L.LidarConfig(model_width=float("nan"))
