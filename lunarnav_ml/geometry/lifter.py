@@ -148,12 +148,16 @@ class LifterConfig:
             rover's height grazes the line of sight on its outer flank, the more so the
             flatter the view). A calibration of the whole chain, SGBM and crest search
             included, so it also takes up the matcher's range bias at a crest (small craters'
-            crests read low, hence the negative metric term). 0.0726, -0.1941 m and -0.1649
-            (session 35): fitted by ``benchmarks/calibrate_rim_offset.py`` (fitted ellipse,
-            SGBM, crest match, every default gate and try) on the lifts from fitted ellipses
-            of two development terrains of the paper-stereo grid (seed 1 shards 0-3, seed 2
-            shards 0-3; D 5-20 m, 5-20 m), checked on seed 1 shards 4-6, seed 3 and seed 4; not fitted
-            on any evaluation set. Without the view term (0.0678 r - 0.1684 m, session 33)
+            crests read low, hence the negative metric term). -0.0200, -0.0667 m and -0.0668
+            (session 47, renders with ``craters.crest_at_rim``): fitted by
+            ``benchmarks/calibrate_rim_offset.py`` (fitted ellipse, SGBM, crest match, every
+            default gate and try) on the lifts from fitted ellipses of the paper-stereo grid's
+            development shards (seed 1 shards 0-2; D 5-20 m, 5-20 m; only the box pair below
+            was checked on a held-out shard); not fitted on any evaluation set. On the renders
+            before ``crest_at_rim``, whose crests lay outside the labelled rim (a protocol
+            target's at 1.058 radii), 0.0726, -0.1941 m and -0.1649
+            (session 35, seed 1 and 2 shards 0-3). Without the view term (0.0678 r -
+            0.1684 m, session 33)
             large craters near the rover read 0.5-1.2 m too far (D = 15-20 m at 5-7 m: the
             offset needed there is 0.4-0.5 m less than at 15-20 m, and the centre moves by
             the offset over 1 - sin(alpha)). Before that, one pair for every lift: 0.1055 and
@@ -165,9 +169,13 @@ class LifterConfig:
             holds the rim's outer flank and raised parts, so its ellipse's near arc lies below
             the visible crest, the crest search misses it more often and the lift reads
             nearer: with one pair for both, the box lifts came out 0.20-0.28 m too near and
-            the fitted ones 0.15-0.21 m too far on all three development sets. 0.0973,
-            -0.0467 m and -0.1880, from the same calibration (BENCHMARKS.md, issue 5, "Edge
-            offsets for box ellipses" and "The view in the edge offset").
+            the fitted ones 0.15-0.21 m too far on all three development sets. 0.0003,
+            -0.0413 m and -0.1014 (session 47: every lift of the same shards from the box,
+            ``--ellipse-source box``, the geometry report's default; held-out shard 3: mean
+            3-sigma centre at 15-20 m 2.70 m with the old pair, 1.13 m with it); before
+            ``crest_at_rim`` 0.0973, -0.0467 m and -0.1880 (BENCHMARKS.md, issue 5, "Edge
+            offsets for box ellipses", "The view in the edge offset" and "Crests on the
+            labelled rim, the default").
         corr_factor: variance inflation for neighbouring rim samples sharing matcher windows.
         ground_gap: rows skipped below the ellipse before the ground patch, times its height.
         ground_rows: the ground patch ends this many ellipse heights (+ 30 px) below it.
@@ -251,12 +259,12 @@ class LifterConfig:
     snap_px: int = 6
     retry_snap_px: int = 12
     reach_far_arc: bool = True
-    rim_offset: float = 0.0726
-    rim_offset_m: float = -0.1941
-    box_rim_offset: float = 0.0973
-    box_rim_offset_m: float = -0.0467
-    rim_offset_view: float = -0.1649
-    box_rim_offset_view: float = -0.1880
+    rim_offset: float = -0.0200
+    rim_offset_m: float = -0.0667
+    box_rim_offset: float = 0.0003
+    box_rim_offset_m: float = -0.0413
+    rim_offset_view: float = -0.0668
+    box_rim_offset_view: float = -0.1014
     corr_factor: float = 2.0
     ground_gap: float = 0.5
     ground_rows: float = 4.0
