@@ -106,8 +106,10 @@ class LidarConfig:
         model_width: the model's diameter as a fraction of the map diameter (the reported
             diameter stays the map's). The map gives the rim crest's diameter; a degraded
             crater's smoothed bowl is narrower than the sharp model with its crest there, so a
-            model sized to the bowl places it better (chosen on development renders,
-            BENCHMARKS.md issue 6).
+            model sized to the bowl places it better: 0.94 (session 47), chosen on six
+            development renders with ``craters.crest_at_rim`` among 0.94, 0.97 and 1.0 (the
+            3-sigma of 5 m craters at 15-20 m narrower on all six; BENCHMARKS.md issue 6,
+            "Crests on the labelled rim, the default"). 1.0 on the renders before it.
     """
 
     roi_m: float = 45.0
@@ -141,7 +143,7 @@ class LidarConfig:
     min_shadow_expected: int = 10
     tilted_ground: bool = True
     plane_sight: bool = True
-    model_width: float = 1.0
+    model_width: float = 0.94
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.model_width) and 0.5 <= self.model_width <= 1.5):
