@@ -68,8 +68,8 @@ class CraterConfig:
     near_camera_boost: Range = _f((2, 5), 0, 50, "extra craters of 2-20 m placed ahead")
     near_camera_range_m: Range = _f((4.0, 35.0), 0.5, 500.0,
                                     "near-rim distance of the extra craters (uniform), m")
-    crest_at_rim: bool = _f(False, doc="move each smoothed profile's crest onto the labelled "
-                                       "rim (off: degraded crests lie at 1.1-1.4 radii)")
+    crest_at_rim: bool = _f(True, doc="move each smoothed profile's crest onto the labelled "
+                                      "rim (off: degraded crests lie at 1.1-1.4 radii)")
 
 
 @dataclass
