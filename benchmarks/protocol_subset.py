@@ -14,7 +14,8 @@ render with that seed; 896 pairs at 1024 px take about 25 min on 2 cores):
 
     .venv/bin/python benchmarks/protocol_subset.py /tmp/ps1024 --render --size 1024
 
-``--config`` renders with other scene settings (e.g. ``configs/synth/crest_at_rim.yaml``).
+``--config`` renders with other scene settings (e.g. ``configs/synth/legacy_crest.yaml``, the
+renders before session 47).
 """
 
 from __future__ import annotations
