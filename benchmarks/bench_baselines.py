@@ -36,9 +36,10 @@ from lunarnav_ml.baselines.analytic import (
     simulate_lidar,
 )
 from lunarnav_ml.baselines.crater_model import CraterProfile
-from lunarnav_ml.baselines.lidar import MapCrater, detect_craters_lidar
+from lunarnav_ml.baselines.lidar import LidarConfig, MapCrater, detect_craters_lidar
 from lunarnav_ml.baselines.report import baseline_report
 from lunarnav_ml.baselines.stereo import detect_craters_stereo
+from lunarnav_ml.errors import LunarNavError
 
 TARGETS = {"lidar": "3 sigma <= 0.28/1.04/1.77/1.94 m (D 5/10/15/20); Pd >= 0.9 to 20 m; "
                     "<= 1 s per scan",
@@ -77,15 +78,29 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--noise-px", type=float, default=0.2, help="truth-noise disparity sigma")
     p.add_argument("--max-images", type=int)
     p.add_argument("--out", type=Path, default=Path("outputs/bench_baselines"))
+    p.add_argument("--lidar-model-width", type=float, default=LidarConfig.model_width,
+                   help="the lidar model's diameter over the map's (default %(default)s; 1.0 "
+                   "for renders of configs/synth/legacy_crest.yaml)")
     args = p.parse_args(argv)
+    try:
+        lidar_config = LidarConfig(model_width=args.lidar_model_width)
+    except LunarNavError as err:
+        print(f"bench_baselines: error: {err}", file=sys.stderr)
+        return 2
     summary: dict = {}
     if args.timing:
         summary["timing"] = time_detectors()
     for method, data in (("lidar", args.lidar_data), ("stereo", args.stereo_data)):
         if data is None:
             continue
-        m = baseline_report(data, args.out / method, method=method, disparity=args.disparity,
-                            noise_px=args.noise_px, max_images=args.max_images, progress=True)
+        try:
+            m = baseline_report(data, args.out / method, method=method,
+                                disparity=args.disparity, noise_px=args.noise_px,
+                                max_images=args.max_images, progress=True,
+                                lidar_config=lidar_config)
+        except LunarNavError as err:
+            print(f"bench_baselines: error: {err}", file=sys.stderr)
+            return 2
         summary[method] = {
             "target": TARGETS[method], "pd_all": m["pd_all"], "n_targets": m["n_targets"],
             "n_hidden": m["n_hidden"], "pd_including_hidden": m["pd_including_hidden"],
