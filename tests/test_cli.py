@@ -82,3 +82,12 @@ def test_an_output_path_that_is_a_file_is_one_line_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "afile" in err
     assert afile.read_text() == "not a folder"
+
+
+def test_geometry_eval_bad_edge_offsets_is_one_line(tmp_path, capsys):
+    bad = tmp_path / "rim_offset.json"
+    bad.write_text('{"box_ellipses": {"box_rim_offset": NaN}}')
+    assert main(["eval", "--task", "geometry", "--gt", str(tmp_path / "a.json"),
+                 "--edge-offsets", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "box_ellipses.box_rim_offset" in err[0]

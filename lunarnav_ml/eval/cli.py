@@ -90,11 +90,13 @@ def run_detection(args: argparse.Namespace) -> int:
 
 def run_geometry(args: argparse.Namespace) -> int:
     """The 3D geometry report of ``lunarnav eval --task geometry``."""
+    from lunarnav_ml.geometry.lifter import load_edge_offsets
     from lunarnav_ml.geometry.report import geometry_report
 
+    lifter = load_edge_offsets(args.edge_offsets) if args.edge_offsets else None
     summary = geometry_report(Path(args.test_gt), args.out, detections=args.test_results,
                               ellipse_source=args.ellipse_source, disparity=args.disparity,
-                              box_jitter=args.box_jitter, seed=args.seed,
+                              box_jitter=args.box_jitter, seed=args.seed, lifter=lifter,
                               progress=not args.no_progress)
     print(json.dumps(summary.get("summary", summary), indent=1, default=str)[:2000])
     return 0
@@ -204,6 +206,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "box's side) before the fit and lift: how the 3D figures depend on a "
                         "detector's box error")
     p.add_argument("--seed", type=int, default=0, help="(geometry) seed of --box-jitter")
+    p.add_argument("--edge-offsets", type=Path, default=None,
+                   help="(geometry) the lifter's edge offsets from a "
+                        "benchmarks/calibrate_rim_offset.py run (its rim_offset.json), in place "
+                        "of the defaults: for another rig, matcher or terrain")
     p.add_argument("--disparity", choices=("sgbm", "rendered"), default="sgbm",
                    help="(geometry) SGBM on the pair, or the dataset's rendered disparity "
                         "(isolates the lifter)")

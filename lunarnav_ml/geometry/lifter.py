@@ -38,6 +38,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -291,6 +292,40 @@ class LifterConfig:
     def residual_limit_px(self, rim_disparity_px: float) -> float:
         """The "tangent" residual gate for a rim of this median disparity, px."""
         return max(self.max_rim_residual_px, self.max_rim_residual_rel * rim_disparity_px)
+
+
+EDGE_OFFSET_TERMS = {"fitted_ellipses": ("rim_offset", "rim_offset_m", "rim_offset_view"),
+                     "box_ellipses": ("box_rim_offset", "box_rim_offset_m", "box_rim_offset_view")}
+
+
+def load_edge_offsets(path: str | Path, base: LifterConfig | None = None) -> LifterConfig:
+    """``base`` (default :class:`LifterConfig`) with the edge offsets of a
+    ``benchmarks/calibrate_rim_offset.py`` output (its ``rim_offset.json``): the fitted-ellipse
+    terms from its ``fitted_ellipses`` object and the box terms from ``box_ellipses``, each
+    where present (a run with ``--ellipse-source box`` gives only the box terms).
+
+    Raises:
+        InputError: the file missing or not JSON, neither object present, or a term missing or
+            not a finite number (naming the file and the field).
+    """
+    from lunarnav_ml.utils.jsonfile import read_json_file
+
+    data = read_json_file(path, "edge-offset calibration", expect=dict)
+    terms: dict[str, float] = {}
+    for section, keys in EDGE_OFFSET_TERMS.items():
+        part = data.get(section)
+        if part is None:
+            continue
+        if not isinstance(part, dict):
+            raise InputError(f"{path}: {section}: expected an object, got {type(part).__name__}")
+        for key in keys:
+            v = part.get(key)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not np.isfinite(v):
+                raise InputError(f"{path}: {section}.{key}: expected a finite number, got {v!r}")
+            terms[key] = float(v)
+    if not terms:
+        raise InputError(f"{path}: no edge offsets (neither fitted_ellipses nor box_ellipses)")
+    return replace(base if base is not None else LifterConfig(), **terms)
 
 
 @dataclass(frozen=True)

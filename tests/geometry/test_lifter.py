@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 
@@ -423,3 +425,34 @@ def test_rows_needed_leave_room_above_a_box_for_a_fitted_ellipse():
     assert first <= 200 - 0.25 * 80 - 4 and last == 200 + 80 * 5.5 + 50
     assert rows_needed(np.array([[0.0, 300.0, 50.0, 8.0]]), 1024)[0] == 290  # small: 10 rows
     assert rows_needed(np.array([[0.0, 5.0, 50.0, 8.0]]), 1024)[0] == 0
+
+
+def test_load_edge_offsets_reads_a_calibration_and_names_bad_fields(tmp_path):
+    from lunarnav_ml.geometry.lifter import load_edge_offsets
+
+    path = tmp_path / "rim_offset.json"
+    box = {"box_rim_offset": 0.1, "box_rim_offset_m": -0.2, "box_rim_offset_view": 0.3,
+           "n_lifted": 5}
+    path.write_text(json.dumps({"fitted_ellipses": None, "box_ellipses": box}))
+    cfg = load_edge_offsets(path)
+    default = LifterConfig()
+    assert (cfg.box_rim_offset, cfg.box_rim_offset_m, cfg.box_rim_offset_view) == (0.1, -0.2, 0.3)
+    assert cfg.rim_offset == default.rim_offset and cfg.snap_px == default.snap_px
+    path.write_text(json.dumps({"box_ellipses": {**box, "box_rim_offset_m": "x"}}))
+    with pytest.raises(InputError, match=r"box_ellipses\.box_rim_offset_m"):
+        load_edge_offsets(path)
+    path.write_text(json.dumps({"fitted_ellipses": None}))
+    with pytest.raises(InputError, match="no edge offsets"):
+        load_edge_offsets(path)
+    with pytest.raises(InputError, match="not found"):
+        load_edge_offsets(tmp_path / "none.json")
+
+
+def test_the_shipped_legacy_offsets_load():
+    from pathlib import Path
+
+    from lunarnav_ml.geometry.lifter import load_edge_offsets
+
+    path = Path(__file__).resolve().parents[2] / "configs/geometry/legacy_crest_edge_offsets.json"
+    cfg = load_edge_offsets(path)
+    assert (cfg.rim_offset, cfg.box_rim_offset_view) == (0.0726, -0.1880)
