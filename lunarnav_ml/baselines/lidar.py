@@ -518,20 +518,22 @@ def map_profile(mc: MapCrater, width: float = 1.0) -> CraterProfile:
 
 
 def map_model(mc: MapCrater, center_xy: np.ndarray, sensor_h: float,
-              width: float = 1.0) -> ModelPoints:
-    """The map crater's model (:func:`map_profile`) sampled every D / 50 (at least 0.1 m), its
-    points classified as seen from the sensor with the crater at ``center_xy`` (ground frame,
-    m)."""
-    return ModelPoints.build(map_profile(mc, width), max(0.1, mc.diameter_m / 50.0), center_xy,
-                             sensor_h)
+              profile: CraterProfile | None = None) -> ModelPoints:
+    """The map crater's model (``profile``, default :func:`map_profile`) sampled every D / 50
+    of the map diameter (at least 0.1 m), its points classified as seen from the sensor with
+    the crater at ``center_xy`` (ground frame, m)."""
+    profile = map_profile(mc) if profile is None else profile
+    return ModelPoints.build(profile, max(0.1, mc.diameter_m / 50.0), center_xy, sensor_h)
 
 
 def sighted_model(scene: _Scene, mc: MapCrater, center_xy: np.ndarray,
                   cfg: LidarConfig) -> tuple[np.ndarray, ModelPoints]:
     """The local ground at ``center_xy`` (:func:`local_ground`, (a, b, c)) and the map
-    crater's model there, its sight lines set from that ground (:func:`sight_height`)."""
-    ground = local_ground(scene, map_profile(mc, cfg.model_width), center_xy, cfg.tilted_ground)
-    return ground, map_model(mc, center_xy, sight_height(scene, ground, cfg), cfg.model_width)
+    crater's model there (``cfg.model_width``), its sight lines set from that ground
+    (:func:`sight_height`)."""
+    profile = map_profile(mc, cfg.model_width)
+    ground = local_ground(scene, profile, center_xy, cfg.tilted_ground)
+    return ground, map_model(mc, center_xy, sight_height(scene, ground, cfg), profile)
 
 
 def local_ground(scene: _Scene, profile: CraterProfile, center_xy: np.ndarray,
