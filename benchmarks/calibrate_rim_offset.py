@@ -36,7 +36,7 @@ import numpy as np
 
 from lunarnav_ml.errors import LunarNavError
 from lunarnav_ml.geometry._checks import as_array
-from lunarnav_ml.geometry.lifter import LifterConfig
+from lunarnav_ml.geometry.lifter import EDGE_OFFSET_TERMS, LifterConfig
 from lunarnav_ml.geometry.report import geometry_report
 from lunarnav_ml.utils.atomic import write_figure, write_json
 from lunarnav_ml.utils.jsonfile import read_json_file
@@ -134,26 +134,27 @@ def main(argv: list[str] | None = None) -> int:
     except LunarNavError as err:
         print(f"calibrate_rim_offset: error: {err}", file=sys.stderr)
         return 2
-    result: dict[str, Any] = {}
+    # keyed and named as load_edge_offsets reads them back (lunarnav eval --edge-offsets)
+    result: dict[str, Any] = dict.fromkeys(EDGE_OFFSET_TERMS)
+    settings = []
     for prefix, (radius, near, need, height, icpt, slope, view, cells) in fits.items():
+        section = "box_ellipses" if prefix else "fitted_ellipses"
         print(f"{'box' if prefix else 'fitted'} ellipses: D (m) | near-rim range (m) | lifted | "
               "median offset needed (m) | fitted (m)")
         for (r, lo), (n, tan_dep, med) in cells.items():
             fitted = icpt + slope * r + view * r * tan_dep
             print(f"{2 * r:g} | {lo:g}+ | {n} | {med:+.3f} | {fitted:+.3f}")
-        result[prefix] = {
-            f"{prefix}rim_offset": slope, f"{prefix}rim_offset_m": icpt,
-            f"{prefix}rim_offset_view": view, "n_lifted": len(need),
+        terms = dict(zip(EDGE_OFFSET_TERMS[section], (slope, icpt, view), strict=True))
+        settings += [f"{k}={v:.4f}" for k, v in terms.items()]
+        result[section] = {
+            **terms, "n_lifted": len(need),
             "cells": [{"diameter_m": 2 * r, "range_from_m": lo, "n": n, "tan_depression": t,
                        "median_m": med} for (r, lo), (n, t, med) in cells.items()]}
         _plot(args.out / f"{prefix}rim_offset.png", radius, near, need, height,
               (icpt, slope, view))
-    settings = ", ".join(f"{k}={v:.4f}" for part in result.values() for k, v in part.items()
-                         if k.endswith(("rim_offset", "rim_offset_m", "rim_offset_view")))
-    print(f"LifterConfig({settings})")
+    print(f"LifterConfig({', '.join(settings)})")
     write_json(args.out / "rim_offset.json", {
-        "fitted_ellipses": result.get(""), "box_ellipses": result.get("box_"),
-        "sets": [str(g) for g in args.gt], "ellipse_source": args.ellipse_source,
+        **result, "sets": [str(g) for g in args.gt], "ellipse_source": args.ellipse_source,
         "crest_match": zero.crest_match})
     return 0
 

@@ -78,6 +78,12 @@ def test_fitted_and_box_ellipses_get_their_own_offsets(tmp_path, capsys):
     assert got["box_ellipses"]["box_rim_offset"] == pytest.approx(0.09, abs=0.005)
     assert f"box_rim_offset={got['box_ellipses']['box_rim_offset']:.4f}" in capsys.readouterr().out
     assert (tmp_path / "box_rim_offset.png").is_file() and (tmp_path / "rim_offset.png").is_file()
+    # what lunarnav eval --edge-offsets reads back
+    from lunarnav_ml.geometry.lifter import load_edge_offsets
+
+    cfg = load_edge_offsets(tmp_path / "rim_offset.json")
+    assert cfg.rim_offset == got["fitted_ellipses"]["rim_offset"]
+    assert cfg.box_rim_offset_m == got["box_ellipses"]["box_rim_offset_m"]
 
 
 @pytest.mark.parametrize("bad, field", [({"near_rim_range_m": None}, "near_rim_range_m"),
