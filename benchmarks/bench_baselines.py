@@ -83,24 +83,26 @@ def main(argv: list[str] | None = None) -> int:
                    "for renders of configs/synth/legacy_crest.yaml)")
     args = p.parse_args(argv)
     try:
-        lidar_config = LidarConfig(model_width=args.lidar_model_width)
+        summary = _run(args)
     except LunarNavError as err:
         print(f"bench_baselines: error: {err}", file=sys.stderr)
         return 2
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+def _run(args: argparse.Namespace) -> dict:
+    """The timings and reports asked for, summarised (``LunarNavError`` on bad input)."""
+    lidar_config = LidarConfig(model_width=args.lidar_model_width)
     summary: dict = {}
     if args.timing:
         summary["timing"] = time_detectors()
     for method, data in (("lidar", args.lidar_data), ("stereo", args.stereo_data)):
         if data is None:
             continue
-        try:
-            m = baseline_report(data, args.out / method, method=method,
-                                disparity=args.disparity, noise_px=args.noise_px,
-                                max_images=args.max_images, progress=True,
-                                lidar_config=lidar_config)
-        except LunarNavError as err:
-            print(f"bench_baselines: error: {err}", file=sys.stderr)
-            return 2
+        m = baseline_report(data, args.out / method, method=method, disparity=args.disparity,
+                            noise_px=args.noise_px, max_images=args.max_images, progress=True,
+                            lidar_config=lidar_config)
         summary[method] = {
             "target": TARGETS[method], "pd_all": m["pd_all"], "n_targets": m["n_targets"],
             "n_hidden": m["n_hidden"], "pd_including_hidden": m["pd_including_hidden"],
@@ -110,8 +112,7 @@ def main(argv: list[str] | None = None) -> int:
             "paper_three_sigma_m": {d: r["paper_3sigma_m"] for d, r in
                                     m["position_error"].items()},
             "s_per_item": m["seconds_per_item"], "report": str(args.out / method / "report.md")}
-    print(json.dumps(summary, indent=1))
-    return 0
+    return summary
 
 
 if __name__ == "__main__":
