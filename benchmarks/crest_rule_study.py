@@ -178,6 +178,20 @@ def _mean_within(frac: float) -> Rule:
     return pick
 
 
+def _agreeing(frac: float) -> Rule:
+    """The farther passing lift where the passing lifts lie within ``frac`` radii of each
+    other; none where they disagree by more (an ambiguous crest)."""
+    def pick(cands: list[dict[str, Any]]) -> dict[str, Any] | None:
+        passed = _first_search(cands)
+        if not passed:
+            return None
+        ranges = [_rng(c) for c in passed]
+        if max(ranges) - min(ranges) > frac * passed[0]["diameter_m"] / 2:
+            return None
+        return max(passed, key=_rng)
+    return pick
+
+
 def _only(rule: str) -> Rule:
     def pick(cands: list[dict[str, Any]]) -> dict[str, Any] | None:
         return (_first_search([c for c in cands if c["rule"] == rule]) or [None])[0]
@@ -196,6 +210,9 @@ RULES: dict[str, Rule] = {
     "mean of the passing": _mean_of_both,
     "mean within 0.25 r, else farther": _mean_within(0.25),
     "mean within 0.5 r, else farther": _mean_within(0.5),
+    "farther, none where they differ by > 0.05 r": _agreeing(0.05),
+    "farther, none where they differ by > 0.1 r": _agreeing(0.1),
+    "farther, none where they differ by > 0.2 r": _agreeing(0.2),
 }
 
 
