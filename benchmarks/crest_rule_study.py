@@ -74,9 +74,11 @@ def _disparity(root: Path, cache: Path, im: dict[str, Any], boxes: np.ndarray,
     return np.where(q < 0, np.nan, q / 16.0)
 
 
-def candidates(gt: Path, out: Path, rendered: bool = False) -> list[dict[str, Any]]:
+def candidates(gt: Path, out: Path, rendered: bool = False, label_ellipse: bool = False
+               ) -> list[dict[str, Any]]:
     """One row per evaluated crater with every candidate lift (zero box edge offsets);
-    ``rendered``: from the dataset's own disparity (no matcher, no crest match)."""
+    ``rendered``: from the dataset's own disparity (no matcher, no crest match);
+    ``label_ellipse``: from the labelled rim ellipse instead of the box's."""
     coco = read_json_file(gt, "annotations", expect=dict)
     root = gt.parent
     anns: dict[int, list[dict[str, Any]]] = {}
@@ -95,7 +97,7 @@ def candidates(gt: Path, out: Path, rendered: bool = False) -> list[dict[str, An
             pair = (left, _read_gray(root, im["right_file"]))
             disp = _disparity(root, out / "disparity", im, boxes, left, ZERO)
         for ann, box in zip(anns[im["id"]], boxes):
-            ell = Ellipse.from_box(box)
+            ell = Ellipse.from_array(ann["ellipse"]) if label_ellipse else Ellipse.from_box(box)
             truth = camera_to_rover(ann["center_cam_m"], rig.height_m, rig.pitch_deg,
                                     rig.roll_deg)[0]
             cands, done = [], set()
@@ -276,6 +278,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("gt", type=Path, nargs="+", help="two or more development annotations files")
     p.add_argument("--out", type=Path, default=Path("outputs/crest_rule_study"))
     p.add_argument("--rows-only", action="store_true", help="reuse the candidates in --out")
+    p.add_argument("--ellipse", choices=("box", "label"), default="box",
+                   help="label: lift from the labelled rim ellipse (isolates the box's ellipse)")
     p.add_argument("--held-out", type=int, default=0,
                    help="evaluate the last N sets with offsets fitted on the others (default: "
                         "each set held out in turn)")
@@ -290,7 +294,8 @@ def main(argv: list[str] | None = None) -> int:
             path = args.out / gt.parent.name / "candidates.json"
             if not args.rows_only:
                 write_json(path, candidates(gt, args.out / gt.parent.name,
-                                             args.disparity == "rendered"))
+                                             args.disparity == "rendered",
+                                             args.ellipse == "label"))
             sets.append(read_json_file(path, "candidates", expect=list))
         compare(sets, args.held_out)
     except LunarNavError as err:
