@@ -46,24 +46,27 @@ from lunarnav_ml.geometry.lifter import (
     _tries,
     rows_needed,
 )
-from lunarnav_ml.geometry.report import _read_gray, summarize
+from lunarnav_ml.geometry.report import _evaluated, _read_gray, summarize
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.utils.atomic import write_json
 from lunarnav_ml.utils.images import read_disparity
 from lunarnav_ml.utils.jsonfile import read_json_file
 
-ZERO = LifterConfig()  # the default gates and tries; each lift's edge offsets are set to 0
+# the default gates and tries, as a box lift (``lift_crater(..., from_box=True)``) with every
+# edge offset at 0: the offsets are fitted per rule afterwards
+ZERO = replace(LifterConfig(), rim_offset=0.0, rim_offset_m=0.0, rim_offset_view=0.0,
+               rim_model_sigma=LifterConfig().box_rim_model_sigma)
 DIAMETERS = (5.0, 7.0, 10.0, 12.0, 15.0, 17.0, 20.0)
 
 
-def _disparity(root: Path, cache: Path, im: dict[str, Any], boxes: np.ndarray,
-               left: np.ndarray, cfg: LifterConfig) -> np.ndarray:
+def _disparity(cache: Path, im: dict[str, Any], boxes: np.ndarray,
+               pair: tuple[np.ndarray, np.ndarray], cfg: LifterConfig) -> np.ndarray:
     """SGBM on the band the boxes need, cached in 1/16 px steps (-1: invalid)."""
     path = cache / f"{im['id']}.npz"
     if path.is_file():
         q = np.load(path)["d16"]
         return np.where(q < 0, np.nan, q / 16.0)
-    right = _read_gray(root, im["right_file"])
+    left, right = pair
     rows = rows_needed(boxes + np.array([0.5, 0.5, 0.0, 0.0]), left.shape[0], cfg)
     disp = SGBMStereo.for_width(left.shape[1])(left, right, rows).disparity
     q = np.where(np.isfinite(disp) & (disp > 0), np.round(disp * 16.0), -1).astype(np.int16)
@@ -83,19 +86,18 @@ def candidates(gt: Path, out: Path, rendered: bool = False, label_ellipse: bool 
     root = gt.parent
     anns: dict[int, list[dict[str, Any]]] = {}
     for ann in crater_labels_3d(gt, coco):
-        if not ann.get("ignore", False) and not ann.get("iscrowd", 0) and ann["diameter_m"] >= 4.5:
+        if _evaluated(ann, 4.5):  # the geometry report's craters (its default min_diameter_m)
             anns.setdefault(ann["image_id"], []).append(ann)
     rows = []
     images = [im for im in coco["images"] if im.get("right_file") and anns.get(im["id"])]
     for n, im in enumerate(images):
         rig = StereoRig.from_camera_record(im["camera"])
         boxes = np.array([a["bbox"] for a in anns[im["id"]]], dtype=np.float64) - [0.5, 0.5, 0, 0]
-        left = _read_gray(root, im["file_name"])
         if rendered:
             disp, pair = read_disparity(root, im), None
         else:
-            pair = (left, _read_gray(root, im["right_file"]))
-            disp = _disparity(root, out / "disparity", im, boxes, left, ZERO)
+            pair = (_read_gray(root, im["file_name"]), _read_gray(root, im["right_file"]))
+            disp = _disparity(out / "disparity", im, boxes, pair, ZERO)
         for ann, box in zip(anns[im["id"]], boxes):
             ell = Ellipse.from_array(ann["ellipse"]) if label_ellipse else Ellipse.from_box(box)
             truth = camera_to_rover(ann["center_cam_m"], rig.height_m, rig.pitch_deg,
@@ -107,9 +109,7 @@ def candidates(gt: Path, out: Path, rendered: bool = False, label_ellipse: bool 
                     continue
                 done.add(reach)
                 for tried, lowest in search:
-                    cfg = replace(tried, rim_offset=0.0, rim_offset_m=0.0, rim_offset_view=0.0,
-                                  rim_model_sigma=tried.box_rim_model_sigma)
-                    res = _lift_tangent(ell, disp, rig, cfg, pair, lowest_step=lowest)
+                    res = _lift_tangent(ell, disp, rig, tried, pair, lowest_step=lowest)
                     cands.append({"search": int(reach), "rule": "lowest" if lowest else "largest",
                                   "ok": bool(res.ok), "reason": res.reason,
                                   "center_m": res.center_m[:2].tolist() if res.ok else None,
@@ -126,8 +126,7 @@ def candidates(gt: Path, out: Path, rendered: bool = False, label_ellipse: bool 
     return rows
 
 
-# a rule maps the passing candidates of the first search with any (in search, rule order)
-# to the one kept; rules that need every search's candidates take them all
+# a rule maps a crater's candidate lifts (every search and crest rule) to the one kept, or None
 Rule = Callable[[list[dict[str, Any]]], dict[str, Any] | None]
 
 
@@ -166,6 +165,12 @@ def _mean_of_both(cands: list[dict[str, Any]]) -> dict[str, Any] | None:
             "diameter_m": float(np.mean([c["diameter_m"] for c in passed]))}
 
 
+def _within(passed: list[dict[str, Any]], frac: float) -> bool:
+    """The passing lifts lie within ``frac`` radii of each other along their ranges."""
+    ranges = [_rng(c) for c in passed]
+    return max(ranges) - min(ranges) <= frac * passed[0]["diameter_m"] / 2
+
+
 def _mean_within(frac: float) -> Rule:
     """The mean of the passing lifts where they lie within ``frac`` radii of each other, else
     the farther."""
@@ -173,10 +178,7 @@ def _mean_within(frac: float) -> Rule:
         passed = _first_search(cands)
         if not passed:
             return None
-        ranges = [_rng(c) for c in passed]
-        if max(ranges) - min(ranges) <= frac * passed[0]["diameter_m"] / 2:
-            return _mean_of_both(passed)
-        return max(passed, key=_rng)
+        return _mean_of_both(passed) if _within(passed, frac) else max(passed, key=_rng)
     return pick
 
 
@@ -185,12 +187,7 @@ def _agreeing(frac: float) -> Rule:
     other; none where they disagree by more (an ambiguous crest)."""
     def pick(cands: list[dict[str, Any]]) -> dict[str, Any] | None:
         passed = _first_search(cands)
-        if not passed:
-            return None
-        ranges = [_rng(c) for c in passed]
-        if max(ranges) - min(ranges) > frac * passed[0]["diameter_m"] / 2:
-            return None
-        return max(passed, key=_rng)
+        return max(passed, key=_rng) if passed and _within(passed, frac) else None
     return pick
 
 
@@ -264,7 +261,7 @@ def compare(sets: list[list[dict[str, Any]]], held_out: int = 0) -> None:
             terms = fit_offset(radius, near, need, height)[:3]
             fits.append(terms)
             held += [r for k in fold for r in _with_offset(picked[k], terms)]
-        m = summarize([{**r, "fit_s": 0.0} for r in held])
+        m = summarize(held)
         vals = [m["per_diameter"].get(str(d), {}).get("range_15_20", {}).get("center_3sigma_m")
                 for d in DIAMETERS]
         mean = np.mean([v for v in vals if v is not None])
