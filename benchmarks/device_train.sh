@@ -20,6 +20,8 @@
 # 3 min 34 s, 891 steps (the shipped small.pt since).
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
+# SEED_TRAIN / SEED_TRANSFER / SEED_MONO (the sources' render seeds, default the CPU runs' 0,
+# 5000011 and 9100003; session 51 rendered new ones), BENCH (0 skips the model-only speed),
 # PY (default python3), EXTRA (more `train.py fit` arguments for both runs, e.g. for a CPU smoke
 # run), TRAIN_ARGS (more arguments for the real run only, e.g. other --data.weights).
 set -euo pipefail
@@ -31,6 +33,9 @@ WORKERS=${WORKERS:-$(nproc)}
 N_TRAIN=${N_TRAIN:-3000}
 N_TRANSFER=${N_TRANSFER:-1200}
 MONO_N=${MONO_N:-}
+SEED_TRAIN=${SEED_TRAIN:-0}
+SEED_TRANSFER=${SEED_TRANSFER:-5000011}
+SEED_MONO=${SEED_MONO:-9100003}
 DATA=data/gpu  # where configs/small_relu_gpu.yaml reads its sources
 RUN=runs/small_relu_gpu  # the config's logger and checkpoint folder
 [ -n "${SITE:-}" ] && export PYTHONPATH="$SITE:${PYTHONPATH:-}"
@@ -61,12 +66,13 @@ log "render validation and training sources, $WORKERS processes each"
 synth val --n 48 --seed 1000003 --config configs/synth/default.yaml --workers 2 &
 p0=$!
 mono_n=(); [ -n "$MONO_N" ] && mono_n=(--n "$MONO_N")
-synth train --n "$N_TRAIN" --seed 0 --config configs/synth/default.yaml --workers "$WORKERS" &
+synth train --n "$N_TRAIN" --seed "$SEED_TRAIN" --config configs/synth/default.yaml \
+    --workers "$WORKERS" &
 p1=$!
-synth transfer --n "$N_TRANSFER" --seed 5000011 --config configs/synth/transfer.yaml \
+synth transfer --n "$N_TRANSFER" --seed "$SEED_TRANSFER" --config configs/synth/transfer.yaml \
     --workers "$WORKERS" &
 p2=$!
-synth mono1024 --protocol paper-mono --seed 9100003 --shard 0/4 "${mono_n[@]}" --size 1024 \
+synth mono1024 --protocol paper-mono --seed "$SEED_MONO" --shard 0/4 "${mono_n[@]}" --size 1024 \
     --workers "$WORKERS" &
 p3=$!
 fail() { log "$1"; tail -n 30 "$2"; kill $p1 $p2 $p3 2>/dev/null; exit 1; }
@@ -78,7 +84,8 @@ log "smoke run on the validation renders while the others render"
     --trainer.check_val_every_n_epoch 1 --trainer.enable_progress_bar false ${EXTRA:-} \
     >"$OUT/smoke.txt" 2>&1 || fail "smoke run failed" "$OUT/smoke.txt"
 rm -rf "$RUN"
-if [ -z "${EXTRA:-}" ]; then  # the GPU is idle while the others render: its model-only speed
+# the GPU is idle while the others render: its model-only speed
+if [ -z "${EXTRA:-}" ] && [ "${BENCH:-1}" != 0 ]; then
     log "model-only training speed on the GPU (no loader), batch 64 and 128"
     for b in 64 128; do
         "$PY" benchmarks/bench_train.py --device cuda --presets small-relu --size 384 \
