@@ -15,6 +15,8 @@ import functools
 import json
 import os
 import sys
+import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -164,11 +166,20 @@ def render_items(job: Job, indices: Sequence[int],
     return len(indices)
 
 
-def _worker_init() -> None:
-    """Worker processes run single-threaded (the pool provides the parallelism)."""
+def _worker_init(parent: int) -> None:
+    """Worker processes run single-threaded (the pool provides the parallelism) and exit when
+    the process that started them is gone: a killed run must not leave idle workers behind."""
     import numba
 
     numba.set_num_threads(1)
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
+
+
+def _exit_with_parent(parent: int, poll_s: float = 1.0) -> None:
+    """Exit this process once ``parent`` is no longer its parent (it died; we were adopted)."""
+    while os.getppid() == parent:
+        time.sleep(poll_s)
+    os._exit(1)
 
 
 def _render_parallel(job: Job, todo: list[int], workers: int,
@@ -181,7 +192,8 @@ def _render_parallel(job: Job, todo: list[int], workers: int,
     size = 16 if job.protocol else 1
     chunks = [todo[c: c + size] for c in range(0, len(todo), size)]
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                             initargs=(os.getpid(),)) as pool:
         futures = [pool.submit(render_items, job, chunk) for chunk in chunks]
         for fut in as_completed(futures):
             done(fut.result())

@@ -2,6 +2,9 @@
 
 import hashlib
 import json
+import subprocess
+import sys
+import time
 
 import pytest
 
@@ -139,3 +142,55 @@ def test_pixel_aspect_is_drawn_after_the_field_of_view_and_stretches_the_image_v
     (uv_s, _), (uv_t, _) = square.left.project(pts), tall.left.project(pts)
     assert np.allclose(uv_t[:, 0], uv_s[:, 0])
     assert np.allclose(uv_t[:, 1] - 31.5, 1.36 * (uv_s[:, 1] - 31.5))
+
+
+def _children(pid):
+    """Pids whose parent is ``pid`` (Linux /proc)."""
+    from pathlib import Path
+
+    kids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            kids.append(int(stat.parent.name))
+    return kids
+
+
+def _running(pid):
+    from pathlib import Path
+
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_render_workers_exit_when_the_run_is_killed(tmp_path):
+    """A killed `lunarnav synth` (SIGKILL: no clean-up in the parent) leaves no idle workers."""
+    script = (
+        "from lunarnav_ml.synth import SynthConfig, generate_dataset\n"
+        "cfg = SynthConfig.from_dict({'terrain': {'extent_m': 40.0, 'resolution_m': 0.1},"
+        " 'craters': {'max_diameter_m': 12.0, 'min_diameter_m': 1.0}})\n"
+        f"generate_dataset({str(tmp_path / 'd')!r}, n_images=500, seed=1, config=cfg,"
+        " image_size=64, workers=2, progress=False)\n")
+    run = subprocess.Popen([sys.executable, "-c", script])
+    try:
+        deadline = time.monotonic() + 180
+        while not list((tmp_path / "d" / "items").glob("*.json")):
+            assert run.poll() is None, "the render run ended early"
+            assert time.monotonic() < deadline, "no item rendered in 180 s"
+            time.sleep(0.2)
+        workers = _children(run.pid)
+        assert len(workers) >= 2
+    finally:
+        run.kill()
+        run.wait()
+    deadline = time.monotonic() + 20
+    while any(_running(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not [w for w in workers if _running(w)], "workers outlived the killed run"
