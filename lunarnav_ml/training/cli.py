@@ -21,10 +21,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_train, forwards_args=True)
 
     p = subparsers.add_parser(
-        "detect", help="detect craters, rocks and artifacts in an image or a folder",
-        description="Writes results.json (COCO results), images.json (image ids), overlay "
-                    "images and a gallery.png contact sheet under --out.")
-    p.add_argument("source", type=Path, help="image file or folder of images")
+        "detect", help="detect craters, rocks and artifacts in images and folders",
+        description="Writes results.json (COCO results), images.json (image ids, files and "
+                    "overlays), overlay images and a gallery.png contact sheet under --out.")
+    p.add_argument("source", type=Path, nargs="+",
+                   help="image files and/or folders of images (each folder's, not recursive)")
     p.add_argument("--weights", type=Path, default=None,
                    help="checkpoint (.ckpt), slim weights (.pt) or an exported ONNX model (.onnx, "
                         f"run by the torch-free onboard runtime); default {DEFAULT_WEIGHTS}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -18,17 +19,42 @@ CLASS_COLORS_BGR = ((0, 200, 255), (255, 160, 0), (60, 60, 255))  # crater, rock
 DETECT_OUTPUTS = ("overlays", "results.json", "images.json", "gallery.png")  # what --out holds
 
 
-def list_images(source: Path) -> list[Path]:
-    """An image file, or the image files of a folder (sorted, not recursive)."""
-    source = Path(source)
-    if source.is_file():
-        return [source]
-    if not source.is_dir():
-        raise InputError(f"{source}: no such image or folder")
-    files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    if not files:
-        raise InputError(f"{source}: the folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
+def list_images(sources: Path | str | Sequence[Path | str]) -> list[Path]:
+    """Image files named directly or held by folders (each folder's sorted, not recursive), in
+    the order given; a file named twice is kept once."""
+    if isinstance(sources, (str, Path)):
+        sources = [sources]
+    files, seen = [], set()
+    for source in map(Path, sources):
+        if source.is_file():
+            found = [source]
+        elif source.is_dir():
+            found = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise InputError(f"{source}: the folder holds no images "
+                                 f"({', '.join(IMAGE_SUFFIXES)})")
+        else:
+            raise InputError(f"{source}: no such image or folder")
+        for f in found:
+            if f.resolve() not in seen:
+                seen.add(f.resolve())
+                files.append(f)
     return files
+
+
+def overlay_names(files: Sequence[Path]) -> list[str]:
+    """One overlay file name per input, ``<stem>.jpg``; a stem met again (``a.png`` beside
+    ``a.jpg``, or two folders' ``000001.png``) gets ``<stem>-2.jpg``, ``<stem>-3.jpg``, ..."""
+    names: list[str] = []
+    used: set[str] = set()
+    for f in files:
+        name, k = f"{Path(f).stem}.jpg", 1
+        while name in used:
+            k += 1
+            name = f"{Path(f).stem}-{k}.jpg"
+        used.add(name)
+        names.append(name)
+    return names
 
 
 def draw_overlay(image: np.ndarray, pred: dict[str, np.ndarray], class_names: list[str],
@@ -76,7 +102,7 @@ def detect_files(detector: Predictor, files: list[Path], out_dir: Path, *, conf_
                  iou_thres: float, overlay_thres: float, batch: int = 8, progress: bool = True,
                  gallery: int = 12) -> dict[str, Any]:
     """Detect on image files; write ``results.json`` (COCO results), ``images.json`` (ids to
-    files), ``overlays/<stem>.jpg`` and, when ``gallery`` > 0, ``gallery.png`` (a contact sheet
+    files and overlays), ``overlays/<stem>.jpg`` (``overlay_names``) and, when ``gallery`` > 0, ``gallery.png`` (a contact sheet
     of up to ``gallery`` overlays spread over the files) under ``out_dir``.
 
     The folder is built under a temporary name and replaces ``out_dir`` (an earlier detect
@@ -92,6 +118,7 @@ def detect_files(detector: Predictor, files: list[Path], out_dir: Path, *, conf_
     check_out_dir(out_dir, files)
     images_meta, results = [], []
     in_gallery, tiles = gallery_indices(len(files), gallery), []
+    names = overlay_names(files)
     bar = tqdm(total=len(files), desc="detect", unit="img", disable=not progress)
     with atomic.atomic_dir(out_dir) as work:
         for start in range(0, len(files), batch):
@@ -101,10 +128,12 @@ def detect_files(detector: Predictor, files: list[Path], out_dir: Path, *, conf_
             ids = list(range(start + 1, start + 1 + len(chunk)))
             results += coco_results(preds, ids)
             for image_id, path, image, pred in zip(ids, chunk, rgb, preds):
+                name = names[image_id - 1]
                 images_meta.append({"id": image_id, "file_name": str(path),
-                                    "width": image.shape[1], "height": image.shape[0]})
+                                    "width": image.shape[1], "height": image.shape[0],
+                                    "overlay": f"overlays/{name}"})
                 overlay = draw_overlay(image, pred, detector.class_names, overlay_thres)
-                atomic.write_image(work / "overlays" / f"{path.stem}.jpg", overlay)
+                atomic.write_image(work / "overlays" / name, overlay)
                 if image_id - 1 in in_gallery:
                     tiles.append(caption_tile(overlay, 320, path.name[:48]))
             bar.update(len(chunk))

@@ -1,5 +1,6 @@
 import argparse
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -197,3 +198,32 @@ def test_detect_will_not_replace_a_folder_it_did_not_write(tmp_path):
     with pytest.raises(ConfigError, match="afile: --out exists and is not a folder"):
         _run([image], afile)
     assert (other / "notes.txt").read_text() == "keep" and afile.read_text() == "keep"
+
+
+def test_detect_takes_several_sources_and_keeps_every_overlay(tmp_path):
+    """Files and folders together (a shell glob gives several files); stems that repeat across
+    folders or suffixes get their own overlays; a file named twice is read once."""
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        cv2.imwrite(str(tmp_path / folder / "000001.png"), np.full((40, 50), 99, np.uint8))
+    cv2.imwrite(str(tmp_path / "a" / "000001.jpg"), np.full((40, 50), 50, np.uint8))
+    cv2.imwrite(str(tmp_path / "x.png"), np.full((30, 30), 10, np.uint8))
+    args = _parser().parse_args(["detect", str(tmp_path / "a"), str(tmp_path / "b"),
+                                 str(tmp_path / "x.png"), str(tmp_path / "b" / "000001.png")])
+    files = detect.list_images(args.source)
+    assert [f.relative_to(tmp_path).as_posix() for f in files] == [
+        "a/000001.jpg", "a/000001.png", "b/000001.png", "x.png"]
+    out = tmp_path / "out"
+    _run(files, out)
+    images = json.loads((out / "images.json").read_text())
+    assert [i["overlay"] for i in images] == ["overlays/000001.jpg", "overlays/000001-2.jpg",
+                                              "overlays/000001-3.jpg", "overlays/x.jpg"]
+    assert sorted(p.name for p in (out / "overlays").iterdir()) == [
+        "000001-2.jpg", "000001-3.jpg", "000001.jpg", "x.jpg"]
+    with pytest.raises(InputError, match="nothing: no such image or folder"):
+        detect.list_images([tmp_path / "x.png", tmp_path / "nothing"])
+
+
+def test_overlay_names_stay_unique_when_a_file_is_named_like_a_renamed_one():
+    names = detect.overlay_names([Path("a.png"), Path("a-2.png"), Path("d/a.png")])
+    assert names == ["a.jpg", "a-2.jpg", "a-3.jpg"]
