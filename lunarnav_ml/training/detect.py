@@ -36,8 +36,9 @@ def list_images(sources: Path | str | Sequence[Path | str]) -> list[Path]:
         else:
             raise InputError(f"{source}: no such image or folder")
         for f in found:
-            if f.resolve() not in seen:
-                seen.add(f.resolve())
+            key = f.resolve()
+            if key not in seen:
+                seen.add(key)
                 files.append(f)
     return files
 
@@ -46,13 +47,12 @@ def overlay_names(files: Sequence[Path]) -> list[str]:
     """One overlay file name per input, ``<stem>.jpg``; a stem met again (``a.png`` beside
     ``a.jpg``, or two folders' ``000001.png``) gets ``<stem>-2.jpg``, ``<stem>-3.jpg``, ..."""
     names: list[str] = []
-    used: set[str] = set()
     for f in files:
-        name, k = f"{Path(f).stem}.jpg", 1
-        while name in used:
+        stem, k = Path(f).stem, 1
+        name = f"{stem}.jpg"
+        while name in names:
             k += 1
-            name = f"{Path(f).stem}-{k}.jpg"
-        used.add(name)
+            name = f"{stem}-{k}.jpg"
         names.append(name)
     return names
 
@@ -102,8 +102,9 @@ def detect_files(detector: Predictor, files: list[Path], out_dir: Path, *, conf_
                  iou_thres: float, overlay_thres: float, batch: int = 8, progress: bool = True,
                  gallery: int = 12) -> dict[str, Any]:
     """Detect on image files; write ``results.json`` (COCO results), ``images.json`` (ids to
-    files and overlays), ``overlays/<stem>.jpg`` (``overlay_names``) and, when ``gallery`` > 0, ``gallery.png`` (a contact sheet
-    of up to ``gallery`` overlays spread over the files) under ``out_dir``.
+    files and overlays), ``overlays/<stem>.jpg`` (named by ``overlay_names``) and, when
+    ``gallery`` > 0, ``gallery.png`` (a contact sheet of up to ``gallery`` overlays spread over
+    the files) under ``out_dir``.
 
     The folder is built under a temporary name and replaces ``out_dir`` (an earlier detect
     output) only when every image was read: a failure leaves ``out_dir`` as it was.

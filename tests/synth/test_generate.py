@@ -5,6 +5,7 @@ import json
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -144,29 +145,23 @@ def test_pixel_aspect_is_drawn_after_the_field_of_view_and_stretches_the_image_v
     assert np.allclose(uv_t[:, 1] - 31.5, 1.36 * (uv_s[:, 1] - 31.5))
 
 
-def _children(pid):
-    """Pids whose parent is ``pid`` (Linux /proc)."""
-    from pathlib import Path
+def _stat(pid):
+    """(state, parent pid) of a process from Linux /proc, or None once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return fields[0], int(fields[1])
 
-    kids = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            kids.append(int(stat.parent.name))
-    return kids
+
+def _children(pid):
+    pids = (int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit())
+    return [c for c in pids if (_stat(c) or (None, None))[1] == pid]
 
 
 def _running(pid):
-    from pathlib import Path
-
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
+    stat = _stat(pid)
+    return stat is not None and stat[0] != "Z"
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
