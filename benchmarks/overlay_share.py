@@ -1,0 +1,67 @@
+"""What an overlay threshold draws: the share of labelled craters it keeps, and boxes per frame.
+
+For each labelled crater (not ignored) the best crater detection at IoU >= 0.5 is found in a
+COCO results file (e.g. the ``detections.json`` of ``lunarnav eval --task transfer``); a
+threshold keeps the crater when that detection's score reaches it. Prints one line per
+threshold: the share of craters kept and the crater boxes per frame at or above it (the
+figures of docs/realdata.md on `lunarnav detect --overlay-conf`).
+
+    python benchmarks/overlay_share.py --gt data/real/chandai_v5/valid/annotations.json \
+        --detections outputs/real/detections.json --conf 0.25 0.1
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+
+import numpy as np
+from pycocotools.mask import iou
+
+
+def best_scores(gt: dict, dets: list[dict], category: int = 1) -> np.ndarray:
+    """Per countable labelled object of ``category``: the best matching detection's score."""
+    by_image = defaultdict(list)
+    for d in dets:
+        if d["category_id"] == category:
+            by_image[d["image_id"]].append(d)
+    best = []
+    for a in gt["annotations"]:
+        if a["category_id"] != category or a.get("ignore") or a.get("iscrowd"):
+            continue
+        found = by_image.get(a["image_id"], [])
+        if not found:
+            best.append(0.0)
+            continue
+        overlap = iou([d["bbox"] for d in found], [a["bbox"]], [0]).ravel()
+        best.append(max((d["score"] for d, o in zip(found, overlap) if o >= 0.5), default=0.0))
+    return np.asarray(best, dtype=float)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--gt", required=True, help="COCO annotations")
+    ap.add_argument("--detections", required=True, help="COCO results JSON")
+    ap.add_argument("--conf", type=float, nargs="+", default=[0.25, 0.1])
+    args = ap.parse_args(argv)
+    try:
+        with open(args.gt) as f:
+            gt = json.load(f)
+        with open(args.detections) as f:
+            dets = json.load(f)
+        best = best_scores(gt, dets)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    crater_scores = [d["score"] for d in dets if d["category_id"] == 1]
+    n_images = len(gt["images"])
+    for t in args.conf:
+        boxes = sum(s >= t for s in crater_scores) / max(n_images, 1)
+        print(f"conf {t}: {np.mean(best >= t) if len(best) else 0.0:.2f} of {len(best)} craters"
+              f" kept, {boxes:.1f} crater boxes per frame")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

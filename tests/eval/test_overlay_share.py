@@ -1,0 +1,54 @@
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+
+_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "overlay_share.py"
+_spec = importlib.util.spec_from_file_location("overlay_share", _PATH)
+share = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(share)
+
+
+def _ann(ann_id: int, image_id: int, bbox: list[float], category: int = 1, **kw) -> dict:
+    return {"id": ann_id, "image_id": image_id, "category_id": category, "bbox": bbox,
+            "area": bbox[2] * bbox[3], "iscrowd": 0, **kw}
+
+
+def _gt() -> dict:
+    return {"images": [{"id": 1}, {"id": 2}],
+            "annotations": [
+                _ann(1, 1, [10, 10, 100, 20]),            # found at 0.6 (and 0.05 elsewhere)
+                _ann(2, 1, [200, 200, 40, 20]),           # only a box at IoU < 0.5
+                _ann(3, 2, [50, 50, 60, 30]),             # found at 0.15
+                _ann(4, 2, [0, 0, 10, 10], ignore=True),  # not counted
+                _ann(5, 2, [80, 80, 10, 10], category=2),  # a rock: not counted
+            ]}
+
+
+def _dets() -> list[dict]:
+    return [{"image_id": 1, "category_id": 1, "bbox": [12, 10, 100, 20], "score": 0.6},
+            {"image_id": 1, "category_id": 1, "bbox": [10, 11, 98, 20], "score": 0.05},
+            {"image_id": 1, "category_id": 1, "bbox": [220, 200, 40, 20], "score": 0.9},
+            {"image_id": 2, "category_id": 1, "bbox": [50, 52, 60, 30], "score": 0.15},
+            {"image_id": 2, "category_id": 2, "bbox": [0, 0, 10, 10], "score": 0.99}]
+
+
+def test_best_scores_take_the_best_match_at_iou_half():
+    best = share.best_scores(_gt(), _dets())
+    np.testing.assert_allclose(best, [0.6, 0.0, 0.15])
+
+
+def test_main_prints_shares_and_boxes_per_frame(tmp_path, capsys):
+    gt, dets = tmp_path / "gt.json", tmp_path / "dets.json"
+    gt.write_text(json.dumps(_gt()))
+    dets.write_text(json.dumps(_dets()))
+    assert share.main(["--gt", str(gt), "--detections", str(dets), "--conf", "0.25", "0.1"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == ["conf 0.25: 0.33 of 3 craters kept, 1.0 crater boxes per frame",
+                     "conf 0.1: 0.67 of 3 craters kept, 1.5 crater boxes per frame"]
+
+
+def test_main_names_a_missing_file(tmp_path, capsys):
+    assert share.main(["--gt", str(tmp_path / "none.json"), "--detections", "x"]) == 1
+    assert "none.json" in capsys.readouterr().err
