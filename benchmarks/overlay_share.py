@@ -14,29 +14,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections import defaultdict
 
 import numpy as np
-from pycocotools.mask import iou
+from pd_diagnosis import CRATER, crater_scores
 
 
-def best_scores(gt: dict, dets: list[dict], category: int = 1) -> np.ndarray:
-    """Per countable labelled object of ``category``: the best matching detection's score."""
-    by_image = defaultdict(list)
-    for d in dets:
-        if d["category_id"] == category:
-            by_image[d["image_id"]].append(d)
-    best = []
-    for a in gt["annotations"]:
-        if a["category_id"] != category or a.get("ignore") or a.get("iscrowd"):
-            continue
-        found = by_image.get(a["image_id"], [])
-        if not found:
-            best.append(0.0)
-            continue
-        overlap = iou([d["bbox"] for d in found], [a["bbox"]], [0]).ravel()
-        best.append(max((d["score"] for d, o in zip(found, overlap) if o >= 0.5), default=0.0))
-    return np.asarray(best, dtype=float)
+def best_scores(gt: dict, dets: list[dict]) -> np.ndarray:
+    """Per countable labelled crater: the best score among its IoU >= 0.5 crater detections,
+    or 0 (:func:`pd_diagnosis.crater_scores`)."""
+    return np.asarray([row[2] for row in crater_scores(gt, dets)], dtype=float)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -54,10 +40,10 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError, KeyError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    crater_scores = [d["score"] for d in dets if d["category_id"] == 1]
+    scores = [d["score"] for d in dets if d["category_id"] == CRATER]
     n_images = len(gt["images"])
     for t in args.conf:
-        boxes = sum(s >= t for s in crater_scores) / max(n_images, 1)
+        boxes = sum(s >= t for s in scores) / max(n_images, 1)
         print(f"conf {t}: {np.mean(best >= t) if len(best) else 0.0:.2f} of {len(best)} craters"
               f" kept, {boxes:.1f} crater boxes per frame")
     return 0
