@@ -47,13 +47,15 @@ def overlay_names(files: Sequence[Path]) -> list[str]:
     """One overlay file name per input, ``<stem>.jpg``; a stem met again (``a.png`` beside
     ``a.jpg``, or two folders' ``000001.png``) gets ``<stem>-2.jpg``, ``<stem>-3.jpg``, ..."""
     names: list[str] = []
+    taken: set[str] = set()  # membership in O(1): a rover log holds thousands of frames
     for f in files:
         stem, k = Path(f).stem, 1
         name = f"{stem}.jpg"
-        while name in names:
+        while name in taken:
             k += 1
             name = f"{stem}-{k}.jpg"
         names.append(name)
+        taken.add(name)
     return names
 
 
