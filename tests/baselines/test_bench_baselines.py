@@ -1,12 +1,8 @@
 """benchmarks/bench_baselines.py: bad input is one line and exit status 2, not a traceback."""
 
-import importlib.util
-from pathlib import Path
+from tests.bench_scripts import load_script
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_baselines.py"
-_spec = importlib.util.spec_from_file_location("bench_baselines", _PATH)
-bench = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(bench)
+bench = load_script("bench_baselines")
 
 
 def test_bad_model_width_and_missing_data_are_one_line(tmp_path, capsys):

@@ -1,16 +1,10 @@
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
-_DIR = Path(__file__).resolve().parents[2] / "benchmarks"
-sys.path.insert(0, str(_DIR))  # overlay_share imports its sibling pd_diagnosis, as when run
-_spec = importlib.util.spec_from_file_location("overlay_share", _DIR / "overlay_share.py")
-share = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(share)
-sys.path.remove(str(_DIR))
+from tests.bench_scripts import load_script
+
+share = load_script("overlay_share")
 
 
 def _ann(ann_id: int, image_id: int, bbox: list[float], category: int = 1, **kw) -> dict:

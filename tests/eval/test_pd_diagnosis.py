@@ -1,15 +1,12 @@
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "pd_diagnosis.py"
-_spec = importlib.util.spec_from_file_location("pd_diagnosis", _PATH)
-diag = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(diag)
+from tests.bench_scripts import load_script
+
+diag = load_script("pd_diagnosis")
 
 
 def _crater(ann_id: int, bbox: list[float], diameter: float, near: float, **kw) -> dict:

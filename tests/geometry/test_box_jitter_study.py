@@ -1,16 +1,12 @@
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
 from lunarnav_ml.geometry.report import geometry_report
+from tests.bench_scripts import load_script
 from tests.geometry.test_report import _write_dataset
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "box_jitter_study.py"
-_spec = importlib.util.spec_from_file_location("box_jitter_study", _PATH)
-study = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(study)
+study = load_script("box_jitter_study")
 
 
 @pytest.fixture(scope="module")

@@ -1,16 +1,12 @@
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from lunarnav_ml.errors import LunarNavError
+from tests.bench_scripts import load_script
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "calibrate_rim_offset.py"
-_spec = importlib.util.spec_from_file_location("calibrate_rim_offset", _PATH)
-cal = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(cal)
+cal = load_script("calibrate_rim_offset")
 
 
 def _rows(offset_m: float, offset_frac: float, view: float = 0.0, seed: int = 0,

@@ -1,16 +1,11 @@
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-_BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
-sys.path.insert(0, str(_BENCH))  # the study imports calibrate_rim_offset beside it
-_spec = importlib.util.spec_from_file_location("crest_rule_study", _BENCH / "crest_rule_study.py")
-study = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(study)
+from tests.bench_scripts import load_script
+
+study = load_script("crest_rule_study")
 
 
 def _cand(search, rule, ok=True, x=10.0, d=5.0, resid=0.3, disp=10.0):

@@ -1,15 +1,11 @@
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
 from lunarnav_ml.errors import LunarNavError
+from tests.bench_scripts import load_script
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "lifter_gate_study.py"
-_spec = importlib.util.spec_from_file_location("lifter_gate_study", _PATH)
-study = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(study)
+study = load_script("lifter_gate_study")
 
 
 def test_lifter_settings_are_typed_by_the_config_fields():

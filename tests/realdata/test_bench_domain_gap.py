@@ -1,16 +1,14 @@
 """benchmarks/bench_domain_gap.py: the input-side sweep and its plot."""
 
-import importlib.util
 import json
 from pathlib import Path
 
+from tests.bench_scripts import load_script
 from tests.detector_fixtures import make_coco
 
+gap = load_script("bench_domain_gap")
+
 ROOT = Path(__file__).resolve().parents[2]
-_spec = importlib.util.spec_from_file_location("bench_domain_gap",
-                                               ROOT / "benchmarks" / "bench_domain_gap.py")
-gap = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(gap)
 NANO = ROOT / "lunarnav_ml" / "weights" / "nano.pt"
 
 

@@ -1,16 +1,14 @@
 """benchmarks/crest_pairs.py: the same craters of two renders, cut out side by side."""
 
-import importlib.util
 import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "crest_pairs.py"
-_spec = importlib.util.spec_from_file_location("crest_pairs", _PATH)
-crest_pairs = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(crest_pairs)
+from tests.bench_scripts import load_script
+
+crest_pairs = load_script("crest_pairs")
 
 
 def _crater(k, image_id, d, deg, near, box, ignore=False, **extra):

@@ -1,21 +1,14 @@
 """benchmarks/bench_loop.py: the loader is timed across epochs; the step rates are real."""
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import torch
 
 from lunarnav_ml.data.datamodule import DetectionDataModule
 from lunarnav_ml.training.module import DetectorModule
+from tests.bench_scripts import load_script
 
-_DIR = Path(__file__).resolve().parents[2] / "benchmarks"
-sys.path.insert(0, str(_DIR))  # bench_loop imports its sibling bench_train, as when run
-_spec = importlib.util.spec_from_file_location("bench_loop", _DIR / "bench_loop.py")
-bench_loop = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(bench_loop)
-sys.path.remove(str(_DIR))
+bench_loop = load_script("bench_loop")
 
 
 def test_loader_rate_runs_past_an_epoch_and_steps_train(tiny_coco):

@@ -1,16 +1,14 @@
 """benchmarks/plot_runs.py: curves of resumed runs are joined; bad logs are named."""
 
-import importlib.util
 from pathlib import Path
 
 import pytest
 
 from lunarnav_ml.errors import InputError
+from tests.bench_scripts import load_script
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "plot_runs.py"
-_spec = importlib.util.spec_from_file_location("plot_runs", _PATH)
-plot_runs = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(plot_runs)
+plot_runs = load_script("plot_runs")
+
 
 HEADER = "epoch,step,train/loss,val/AP50,val/AP50_crater\n"
 
