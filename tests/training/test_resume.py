@@ -168,3 +168,17 @@ def test_targets_prepared_on_the_host_give_the_device_path_loss(tiny_coco, tmp_p
     assert len(set(record.sides)) > 1  # the multi-scale draw moved with the preparation
     for new, old in record.pairs:
         assert new == old
+
+
+def test_accumulated_batches_step_ema_and_schedule_once_per_optimizer_step(tiny_coco, tmp_path):
+    """``--trainer.accumulate_grad_batches 8`` emulates a GPU's batch on a CPU (configs/
+    small_relu_acc.yaml): the EMA and the LR schedule move once per optimizer step, not per
+    micro-batch, so their constants (``ema_tau``, ``warmup_steps``) keep their meaning."""
+    module, dm = _parts(tiny_coco)
+    trainer = L.Trainer(default_root_dir=tmp_path, max_epochs=1, limit_train_batches=4,
+                        accumulate_grad_batches=2, accelerator="cpu", logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, limit_val_batches=0)
+    trainer.fit(module, dm)
+    assert trainer.global_step == 2 and int(module.ema.updates) == 2
+    assert trainer.lr_scheduler_configs[0].scheduler.last_epoch == 2
