@@ -12,11 +12,15 @@ figures of docs/realdata.md on `lunarnav detect --overlay-conf`).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 import numpy as np
 from pd_diagnosis import CRATER, crater_scores
+
+from lunarnav_ml.data.coco import read_coco
+from lunarnav_ml.errors import LunarNavError
+from lunarnav_ml.eval.predict import check_coco_results
+from lunarnav_ml.utils.jsonfile import read_json_file
 
 
 def best_scores(gt: dict, dets: list[dict]) -> np.ndarray:
@@ -31,19 +35,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--detections", required=True, help="COCO results JSON")
     ap.add_argument("--conf", type=float, nargs="+", default=[0.25, 0.1])
     args = ap.parse_args(argv)
-    try:
-        with open(args.gt) as f:
-            gt = json.load(f)
-        with open(args.detections) as f:
-            dets = json.load(f)
-        best = best_scores(gt, dets)
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    try:  # the labels and the results checked as the evaluations check them
+        gt = read_coco(args.gt, check_files=False)[0]
+        dets = check_coco_results(read_json_file(args.detections, "detections"), args.detections)
+    except LunarNavError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    best = best_scores(gt, dets)
     scores = [d["score"] for d in dets if d["category_id"] == CRATER]
     n_images = len(gt["images"])
     for t in args.conf:
-        boxes = sum(s >= t for s in scores) / max(n_images, 1)
+        boxes = sum(s >= t for s in scores) / n_images  # read_coco refuses a set of no images
         print(f"conf {t}: {np.mean(best >= t) if len(best) else 0.0:.2f} of {len(best)} craters"
               f" kept, {boxes:.1f} crater boxes per frame")
     return 0

@@ -13,7 +13,10 @@ def _ann(ann_id: int, image_id: int, bbox: list[float], category: int = 1, **kw)
 
 
 def _gt() -> dict:
-    return {"images": [{"id": 1}, {"id": 2}],
+    return {"images": [{"id": i, "file_name": f"{i}.png", "width": 432, "height": 432}
+                       for i in (1, 2)],
+            "categories": [{"id": 1, "name": "crater"}, {"id": 2, "name": "rock"},
+                           {"id": 3, "name": "artifact"}],
             "annotations": [
                 _ann(1, 1, [10, 10, 100, 20]),            # found at 0.6 (and 0.05 elsewhere)
                 _ann(2, 1, [200, 200, 40, 20]),           # only a box at IoU < 0.5
@@ -47,5 +50,14 @@ def test_main_prints_shares_and_boxes_per_frame(tmp_path, capsys):
 
 
 def test_main_names_a_missing_file(tmp_path, capsys):
-    assert share.main(["--gt", str(tmp_path / "none.json"), "--detections", "x"]) == 1
+    assert share.main(["--gt", str(tmp_path / "none.json"), "--detections", "x"]) == 2
     assert "none.json" in capsys.readouterr().err
+
+
+def test_main_names_a_malformed_detection_in_one_line(tmp_path, capsys):
+    gt, dets = tmp_path / "gt.json", tmp_path / "dets.json"
+    gt.write_text(json.dumps(_gt()))
+    dets.write_text(json.dumps([{**_dets()[0], "bbox": [1, 2]}]))
+    assert share.main(["--gt", str(gt), "--detections", str(dets)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "dets.json[0]" in err[0] and "bbox" in err[0]
