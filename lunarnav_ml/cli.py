@@ -18,7 +18,7 @@ from lunarnav_ml.errors import REPORTED_ERRORS
 # Stage modules whose ``register`` adds a subcommand, in the order ``--help`` lists them.
 STAGE_CLI_MODULES = (
     "lunarnav_ml.synth.cli",  # lunarnav synth
-    "lunarnav_ml.training.cli",  # lunarnav train, lunarnav detect
+    "lunarnav_ml.training.cli",  # lunarnav train, lunarnav detect, lunarnav average
     "lunarnav_ml.eval.cli",  # lunarnav eval
     "lunarnav_ml.realdata.cli",  # lunarnav import-real
     "lunarnav_ml.export.cli",  # lunarnav export, lunarnav bench

@@ -1,5 +1,5 @@
 """Training and inference entry points other stages code against (docs/ARCHITECTURE.md):
-``fit_detector``, ``load_detector`` and ``Detector``."""
+``fit_detector``, ``load_detector``, ``average_detectors`` and ``Detector``."""
 
 from __future__ import annotations
 
@@ -162,6 +162,42 @@ def load_detector(path: str | Path, img_size: int | None = None) -> Detector:
     if img_size is not None:
         detector.set_img_size(img_size)
     return detector
+
+
+def average_detectors(paths: list[str | Path]) -> Detector:
+    """The uniform average of several detectors' weights and BatchNorm statistics (a "model
+    soup"; ``torch.optim.swa_utils.AveragedModel``).
+
+    Useful for checkpoints of one lineage (a run and the model it was fine-tuned from, or the
+    last checkpoints of one run): session 55 averaged the shipped ``small.pt`` with its 60-minute
+    continuation (BENCHMARKS.md, issue 4). Weights of separate trainings from scratch do not
+    average into a working model.
+
+    Returns:
+        a detector with the first file's preset, anchors, class names and input size.
+
+    Raises:
+        ConfigError: fewer than two files.
+        InputError: a file :func:`load_detector` cannot read, or whose preset, class names or
+            anchors differ from the first file's.
+    """
+    from torch.optim.swa_utils import AveragedModel
+
+    if len(paths) < 2:
+        raise ConfigError(f"averaging needs two or more weight files, got {len(paths)}")
+    detectors = [load_detector(path) for path in paths]
+    first = detectors[0]
+    for path, other in zip(paths[1:], detectors[1:]):
+        for what, same in (("preset differs", other.preset == first.preset),
+                           ("class names differ", other.class_names == first.class_names),
+                           ("anchors differ", torch.equal(other.anchors, first.anchors))):
+            if not same:
+                raise InputError(f"{path}: its {what} from {paths[0]}'s; only detectors of "
+                                 "one architecture and lineage can be averaged")
+    averaged = AveragedModel(first.model, use_buffers=True)
+    for detector in detectors:
+        averaged.update_parameters(detector.model)
+    return Detector(averaged.module, first.img_size, first.class_names, first.preset)
 
 
 def _check_weights(path: str | Path, model: YOLO, state: dict[str, torch.Tensor],

@@ -1,4 +1,5 @@
-"""``lunarnav train`` (the LightningCLI of train.py) and ``lunarnav detect``."""
+"""``lunarnav train`` (the LightningCLI of train.py), ``lunarnav detect`` and
+``lunarnav average``."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``train`` and ``detect`` subcommands."""
+    """Add the ``train``, ``detect`` and ``average`` subcommands."""
     p = subparsers.add_parser(
         "train", add_help=False, help="train the detector (LightningCLI; try 'train fit --help')",
         description="Forwards its arguments to the Lightning CLI of train.py, e.g. "
@@ -45,6 +46,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_tta_arguments(p)
     p.set_defaults(func=run_detect)
+
+    p = subparsers.add_parser(
+        "average", help="average the weights of detectors of one lineage (a model soup)",
+        description="Averages the weights and BatchNorm statistics of several checkpoints or "
+                    "slim weight files of one architecture (a run and the model it started "
+                    "from, or one run's checkpoints) into one slim weights file.")
+    p.add_argument("weights", type=Path, nargs="+",
+                   help="checkpoints (.ckpt) or slim weights (.pt), two or more")
+    p.add_argument("--out", type=Path, required=True, help="slim weights file to write (.pt)")
+    p.add_argument("--half", action="store_true",
+                   help="store the weights in float16, as the shipped files are")
+    p.set_defaults(func=run_average)
 
 
 def run_train(args: argparse.Namespace) -> int:
@@ -80,4 +93,15 @@ def run_detect(args: argparse.Namespace) -> int:
                        progress=not args.quiet, gallery=args.gallery)
     print(f"lunarnav detect: {len(out['results'])} detections on {len(files)} images -> "
           f"{args.out / 'results.json'}")
+    return 0
+
+
+def run_average(args: argparse.Namespace) -> int:
+    """Average the weight files into ``--out`` (written under a temporary name, then renamed)."""
+    from lunarnav_ml.training.api import average_detectors
+    from lunarnav_ml.utils.atomic import check_destination
+
+    check_destination(args.out)
+    average_detectors(args.weights).save(args.out, half=args.half)
+    print(f"lunarnav average: {len(args.weights)} detectors -> {args.out}")
     return 0

@@ -136,3 +136,42 @@ def test_load_detector_names_mismatched_weights_in_one_line(tmp_path):
     assert "\n" not in message and message.startswith(f"{tmp_path / 'nano.pt'}: weights do not")
     assert "missing head.preds.0.bias; unexpected extra.weight; other shape: " \
            "backbone.stem.0.weight [3, 3] in the file, [" in message
+
+
+def test_average_detectors_is_the_mean_of_weights_and_statistics(trained, tmp_path):
+    from lunarnav_ml.training.api import average_detectors
+
+    det = load_detector(trained[0])
+    other = load_detector(trained[0])
+    with torch.no_grad():
+        for key, value in other.model.state_dict().items():
+            if value.is_floating_point() and "anchors" not in key:
+                value.mul_(3.0)  # weights, biases and BatchNorm running statistics
+    second = other.save(tmp_path / "x3.pt")
+    mean = average_detectors([trained[0], second])
+    assert mean.preset == det.preset and mean.img_size == det.img_size
+    a, m = det.model.state_dict(), mean.model.state_dict()
+    for key, value in a.items():
+        if value.is_floating_point() and "anchors" not in key:
+            torch.testing.assert_close(m[key], 2.0 * value)
+    torch.testing.assert_close(mean.anchors, det.anchors)
+    # the average of one file with itself is that file
+    same = average_detectors([trained[0], trained[0]])
+    image = [np.random.default_rng(1).integers(0, 255, (64, 64, 3), dtype=np.uint8)]
+    np.testing.assert_allclose(same.predict(image, 0.01)[0]["boxes"],
+                               det.predict(image, 0.01)[0]["boxes"], rtol=1e-5, atol=1e-4)
+
+
+def test_average_detectors_refuses_other_architectures(trained, tmp_path):
+    from lunarnav_ml.errors import ConfigError
+    from lunarnav_ml.training.api import average_detectors
+
+    with pytest.raises(ConfigError, match="two or more"):
+        average_detectors([trained[0]])
+    det = load_detector(trained[0])
+    det.model.anchors.mul_(2.0)
+    moved = det.save(tmp_path / "moved.pt")
+    with pytest.raises(InputError, match="moved.pt: its anchors differ"):
+        average_detectors([trained[0], moved])
+    with pytest.raises(InputError, match="missing.pt"):
+        average_detectors([trained[0], tmp_path / "missing.pt"])

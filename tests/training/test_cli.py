@@ -227,3 +227,21 @@ def test_detect_takes_several_sources_and_keeps_every_overlay(tmp_path):
 def test_overlay_names_stay_unique_when_a_file_is_named_like_a_renamed_one():
     names = detect.overlay_names([Path("a.png"), Path("a-2.png"), Path("d/a.png")])
     assert names == ["a.jpg", "a-2.jpg", "a-3.jpg"]
+
+
+def test_average_writes_slim_weights_and_refuses_bad_input(weights, tmp_path, capsys):
+    from lunarnav_ml.cli import main
+    from lunarnav_ml.training.api import load_detector
+
+    out = tmp_path / "soup.pt"
+    assert main(["average", str(weights), str(weights), "--out", str(out), "--half"]) == 0
+    assert load_detector(out).class_names == ["crater", "rock", "artifact"]
+    assert not list(tmp_path.glob("*.tmp*"))
+    capsys.readouterr()
+    missing = tmp_path / "missing.pt"
+    assert main(["average", str(weights), str(missing), "--out", str(tmp_path / "b.pt")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing.pt" in err and "Traceback" not in err
+    assert not (tmp_path / "b.pt").exists()
+    assert main(["average", str(weights), "--out", str(tmp_path / "c.pt")]) == 2
+    assert "two or more" in capsys.readouterr().err
