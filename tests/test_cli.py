@@ -7,7 +7,7 @@ import pytest
 
 from lunarnav_ml.cli import build_parser, main
 
-SUBCOMMANDS = ("synth", "train", "eval", "export", "detect", "demo")
+SUBCOMMANDS = ("synth", "train", "eval", "export", "detect", "average", "demo")
 
 
 def test_every_subcommand_is_registered():

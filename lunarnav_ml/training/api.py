@@ -170,8 +170,8 @@ def average_detectors(paths: list[str | Path]) -> Detector:
 
     Useful for checkpoints of one lineage (a run and the model it was fine-tuned from, or the
     last checkpoints of one run): session 55 averaged the shipped ``small.pt`` with its 60-minute
-    continuation (BENCHMARKS.md, issue 4). Weights of separate trainings from scratch do not
-    average into a working model.
+    continuation (BENCHMARKS.md, issue 4). Models trained apart from scratch do not in general
+    average into a working one.
 
     Returns:
         a detector with the first file's preset, anchors, class names and input size.
