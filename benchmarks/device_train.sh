@@ -18,15 +18,15 @@
 # Session 31 (H200, BUDGET_S=570, the loader and loss fixes): 1,597 steps in 4 min 58 s.
 # Session 43 (H100, BUDGET_S=565, the real cameras' renders at 0.35): rendering 270 s, training
 # 3 min 34 s, 891 steps (shipped until session 48).
-# Session 53 (H200, BUDGET_S=570, the CPU runs' two sources, the paper's grid left out; the shipped
-# small.pt since): rendering 176 s, training 4 min 24 s, 1,069 steps:
+# Session 53 (H200, BUDGET_S=570, the CPU runs' two sources, the paper's grid left out; shipped in
+# session 53, the start of sessions 54's and 55's CPU runs): rendering 176 s, training 4 min 24 s, 1,069 steps:
 #   OUT=$OUT BUDGET_S=570 SITE=$PWD/.gpu/site N_TRAIN=4000 N_TRANSFER=1700 MONO_N=8 BENCH=0 \
 #       SEED_TRAIN=23000001 SEED_TRANSFER=25000011 SEED_MONO=9300007 TRAIN_ARGS="--data.train \
 #       [data/gpu/train/annotations.json,data/gpu/transfer/annotations.json] \
 #       --data.read_sizes [null,null] --data.weights [0.7,0.3]" bash benchmarks/device_train.sh
 # (MONO_N=8: the grid's eight frames render in seconds and go unused; the start was the tree's
 # small.pt then, git 67e91fa's: to redo it, put that file at lunarnav_ml/weights/small.pt.)
-# Use new seeds next time.
+# Use new seeds next time (renders up to 29,000,011 are taken; 30000001 / 31000011 are not).
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
 # SEED_TRAIN / SEED_TRANSFER / SEED_MONO (the sources' render seeds, default the CPU runs' 0,
