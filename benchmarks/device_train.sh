@@ -19,7 +19,8 @@
 # Session 43 (H100, BUDGET_S=565, the real cameras' renders at 0.35): rendering 270 s, training
 # 3 min 34 s, 891 steps (shipped until session 48).
 # Session 53 (H200, BUDGET_S=570, the CPU runs' two sources, the paper's grid left out; shipped in
-# session 53, the start of sessions 54's and 55's CPU runs): rendering 176 s, training 4 min 24 s, 1,069 steps:
+# session 53, the start of sessions 54's and 55's CPU runs): rendering 176 s, training 4 min 24 s,
+# 1,069 steps:
 #   OUT=$OUT BUDGET_S=570 SITE=$PWD/.gpu/site N_TRAIN=4000 N_TRANSFER=1700 MONO_N=8 BENCH=0 \
 #       SEED_TRAIN=23000001 SEED_TRANSFER=25000011 SEED_MONO=9300007 TRAIN_ARGS="--data.train \
 #       [data/gpu/train/annotations.json,data/gpu/transfer/annotations.json] \
