@@ -185,18 +185,18 @@ def average_detectors(paths: list[str | Path]) -> Detector:
 
     if len(paths) < 2:
         raise ConfigError(f"averaging needs two or more weight files, got {len(paths)}")
-    detectors = [load_detector(path) for path in paths]
-    first = detectors[0]
-    for path, other in zip(paths[1:], detectors[1:]):
+    first = load_detector(paths[0])
+    averaged = AveragedModel(first.model, use_buffers=True)
+    averaged.update_parameters(first.model)
+    for path in paths[1:]:  # one model in memory at a time besides the running mean
+        other = load_detector(path)
         for what, same in (("preset differs", other.preset == first.preset),
                            ("class names differ", other.class_names == first.class_names),
                            ("anchors differ", torch.equal(other.anchors, first.anchors))):
             if not same:
                 raise InputError(f"{path}: its {what} from {paths[0]}'s; only detectors of "
                                  "one architecture and lineage can be averaged")
-    averaged = AveragedModel(first.model, use_buffers=True)
-    for detector in detectors:
-        averaged.update_parameters(detector.model)
+        averaged.update_parameters(other.model)
     return Detector(averaged.module, first.img_size, first.class_names, first.preset)
 
 
