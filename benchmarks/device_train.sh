@@ -27,7 +27,7 @@
 #       --data.read_sizes [null,null] --data.weights [0.7,0.3]" bash benchmarks/device_train.sh
 # (MONO_N=8: the grid's eight frames render in seconds and go unused; the start was the tree's
 # small.pt then, git 67e91fa's: to redo it, put that file at lunarnav_ml/weights/small.pt.)
-# Use new seeds next time (renders up to 33,000,011 are taken; 34000001 / 35000011 are not).
+# Use new seeds next time (renders up to 35,000,011 are taken; 36000001 / 37000011 are not).
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
 # SEED_TRAIN / SEED_TRANSFER / SEED_MONO (the sources' render seeds, default the CPU runs' 0,
