@@ -27,7 +27,10 @@
 #       --data.read_sizes [null,null] --data.weights [0.7,0.3]" bash benchmarks/device_train.sh
 # (MONO_N=8: the grid's eight frames render in seconds and go unused; the start was the tree's
 # small.pt then, git 67e91fa's: to redo it, put that file at lunarnav_ml/weights/small.pt.)
-# Use new seeds next time (renders up to 35,000,011 are taken; 36000001 / 37000011 are not).
+# Session 59 (H200, BUDGET_S=570; the same command from session 57's small.pt with
+# SEED_TRAIN=36000001 SEED_TRANSFER=37000011 and --data.weights [0.4,0.6]; not shipped, it lost
+# real craters): rendering 223 s, training 4 min 29 s, 1,103 steps.
+# Use new seeds next time (renders up to 37,000,011 are taken; 38000001 / 39000011 are not).
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
 # SEED_TRAIN / SEED_TRANSFER / SEED_MONO (the sources' render seeds, default the CPU runs' 0,
@@ -56,6 +59,7 @@ lunarnav() { "$PY" -c 'import sys; from lunarnav_ml.cli import main; sys.exit(ma
 
 log "imports"
 "$PY" - <<'EOF' 2>&1 | tee -a "$OUT/log.txt"
+import lunarnav_ml  # first: it turns albumentations' PyPI update check off
 import albumentations, jsonargparse, pycocotools, torch, lightning, cv2, numba
 from lightning.pytorch.cli import LightningCLI  # needs jsonargparse[signatures]
 import lunarnav_ml.training.lightning_cli
