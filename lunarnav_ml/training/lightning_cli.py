@@ -6,10 +6,13 @@ Examples::
     python train.py fit --config configs/nano_cpu.yaml
     python train.py fit --config configs/nano_cpu.yaml --ckpt_path runs/nano_cpu/checkpoints/last.ckpt
     python train.py fit --config configs/finetune_real.yaml --model.init_from best.ckpt
+    python train.py fit --config configs/small_relu_lowlr.yaml --model.init_from small.pt \
+        --trainer.default_root_dir runs/lowlr_again   # logs and checkpoints there too
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -24,11 +27,44 @@ from lunarnav_ml.utils.yamlfile import read_yaml
 
 
 class DetectorCLI(LightningCLI):
-    """LightningCLI that keeps the input size of model and data in step."""
+    """LightningCLI that keeps the input size of model and data in step, and moves a config's
+    run folder with ``--trainer.default_root_dir``: the loggers' ``save_dir`` and the
+    checkpoint callbacks' ``dirpath`` under the config's ``default_root_dir`` follow the new
+    one, so a config continued by command-line overrides writes a run folder of its own."""
+
+    def __init__(self, *args, moved_root: tuple[str, str] | None = None, **kwargs) -> None:
+        self.moved_root = moved_root  # (the config files' default_root_dir, the command line's)
+        super().__init__(*args, **kwargs)
 
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("data.img_size", "model.img_size")
         parser.link_arguments("data.num_classes", "model.num_classes")
+
+    def before_instantiate_classes(self) -> None:
+        if self.moved_root is None:
+            return
+        config = self.config[self.subcommand] if self.subcommand else self.config
+        trainer = config.get("trainer")
+        if trainer is None:
+            return
+        loggers = trainer.get("logger")
+        for entry in [*(loggers if isinstance(loggers, list) else [loggers]),
+                      *(trainer.get("callbacks") or [])]:
+            init_args = getattr(entry, "init_args", None)
+            for key in ("save_dir", "dirpath"):
+                value = getattr(init_args, key, None) if init_args is not None else None
+                if isinstance(value, str):
+                    setattr(init_args, key, moved_path(value, *self.moved_root))
+
+
+def moved_path(path: str, old_root: str, new_root: str) -> str:
+    """``path`` with its leading ``old_root`` replaced by ``new_root``; other paths as given."""
+    rel = os.path.relpath(os.path.normpath(path), os.path.normpath(old_root))
+    if rel == os.curdir:
+        return new_root
+    if rel == os.pardir or rel.startswith(os.pardir + os.sep) or os.path.isabs(rel):
+        return path
+    return os.path.join(new_root, rel)
 
 
 def run_cli(args: Sequence[str] | None = None, run: bool = True, prog: str | None = None
@@ -45,10 +81,15 @@ def run_cli(args: Sequence[str] | None = None, run: bool = True, prog: str | Non
                      if isinstance(c, dict) and c.get("ckpt_path") is not None), None)
     if ckpt is not None:
         check_ckpt_path(str(ckpt))
+    root = option_value(argv, "--trainer.default_root_dir")
+    config_root = next((c["trainer"]["default_root_dir"] for c in reversed(configs)
+                        if isinstance(c, dict) and isinstance(c.get("trainer"), dict)
+                        and isinstance(c["trainer"].get("default_root_dir"), str)), None)
+    moved = (config_root, root) if root is not None and config_root is not None else None
     return DetectorCLI(DetectorModule, DetectionDataModule, args=list(args) if args is not None
                        else None, run=run, seed_everything_default=0,
                        save_config_kwargs={"overwrite": True},
-                       parser_kwargs={"prog": prog} if prog else None)
+                       parser_kwargs={"prog": prog} if prog else None, moved_root=moved)
 
 
 def option_value(args: Sequence[str], name: str) -> str | None:

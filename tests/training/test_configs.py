@@ -119,3 +119,36 @@ def test_train_py_checks_ckpt_path_before_lightning_loads_it(tiny_coco, tmp_path
         code = main(["fit", *_data_args(tiny_coco), "--trainer.accelerator", "cpu", *args])
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 2 and len(err) == 1 and err[0].startswith(f"train.py: error: {message}")
+
+
+def test_default_root_dir_moves_the_run_folder(tiny_coco, tmp_path, monkeypatch):
+    """--trainer.default_root_dir on the command line moves the config's logger and checkpoint
+    folders with it; without it they stay where the config puts them."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    monkeypatch.chdir(tmp_path)
+    config = Path(__file__).parents[2] / "configs" / "small_relu_lowlr.yaml"
+    args = ["--config", str(config), *_data_args(tiny_coco), "--data.num_workers", "0"]
+
+    def folders(cli):
+        dirs = {Path(cb.dirpath).relative_to(tmp_path.resolve()).as_posix()
+                for cb in cli.trainer.callbacks if isinstance(cb, ModelCheckpoint)}
+        return {Path(cli.trainer.loggers[0].save_dir).as_posix()}, dirs
+
+    logs, ckpts = folders(run_cli(args, run=False))
+    assert logs == {"runs/small_relu_lowlr"}
+    assert ckpts == {"runs/small_relu_lowlr/checkpoints", "runs/small_relu_lowlr/snapshots"}
+    cli = run_cli([*args, "--trainer.default_root_dir", "runs/again"], run=False)
+    logs, ckpts = folders(cli)
+    assert logs == {"runs/again"}
+    assert ckpts == {"runs/again/checkpoints", "runs/again/snapshots"}
+    assert cli.trainer.default_root_dir == "runs/again"
+
+
+def test_moved_path_keeps_paths_outside_the_root():
+    from lunarnav_ml.training.lightning_cli import moved_path
+
+    assert moved_path("runs/a/checkpoints", "runs/a", "runs/b") == "runs/b/checkpoints"
+    assert moved_path("runs/a", "runs/a/", "out/b") == "out/b"
+    assert moved_path("runs/ab/checkpoints", "runs/a", "runs/b") == "runs/ab/checkpoints"
+    assert moved_path("/elsewhere/logs", "runs/a", "runs/b") == "/elsewhere/logs"
