@@ -76,20 +76,29 @@ def run_cli(args: Sequence[str] | None = None, run: bool = True, prog: str | Non
     configs = [read_yaml(path, "config file")  # one-line ConfigError for a missing or
                for path in config_files(argv)]  # malformed file
     ckpt = option_value(argv, "--ckpt_path")
-    if ckpt is None:  # the last config file that sets it wins, as in jsonargparse
-        ckpt = next((c["ckpt_path"] for c in reversed(configs)
-                     if isinstance(c, dict) and c.get("ckpt_path") is not None), None)
+    if ckpt is None:
+        ckpt = config_value(configs, "ckpt_path")
     if ckpt is not None:
         check_ckpt_path(str(ckpt))
     root = option_value(argv, "--trainer.default_root_dir")
-    config_root = next((c["trainer"]["default_root_dir"] for c in reversed(configs)
-                        if isinstance(c, dict) and isinstance(c.get("trainer"), dict)
-                        and isinstance(c["trainer"].get("default_root_dir"), str)), None)
-    moved = (config_root, root) if root is not None and config_root is not None else None
+    config_root = config_value(configs, "trainer", "default_root_dir")
+    moved = ((str(config_root), root) if root is not None and config_root is not None
+             else None)
     return DetectorCLI(DetectorModule, DetectionDataModule, args=list(args) if args is not None
                        else None, run=run, seed_everything_default=0,
                        save_config_kwargs={"overwrite": True},
                        parser_kwargs={"prog": prog} if prog else None, moved_root=moved)
+
+
+def config_value(configs: Sequence[object], *keys: str) -> object | None:
+    """The value at ``keys`` in the last config file that sets it (not null), as jsonargparse
+    merges them; None where none does."""
+    for config in reversed(configs):
+        for key in keys:
+            config = config.get(key) if isinstance(config, dict) else None
+        if config is not None:
+            return config
+    return None
 
 
 def option_value(args: Sequence[str], name: str) -> str | None:
