@@ -3,20 +3,16 @@ import json
 import numpy as np
 
 from tests.bench_scripts import load_script
+from tests.eval.coco_fixtures import CATEGORIES
+from tests.eval.coco_fixtures import ann as _ann
 
 paired = load_script("paired_recall")
-
-
-def _ann(ann_id: int, image_id: int, bbox: list[float], category: int = 1, **kw) -> dict:
-    return {"id": ann_id, "image_id": image_id, "category_id": category, "bbox": bbox,
-            "area": bbox[2] * bbox[3], "iscrowd": 0, **kw}
 
 
 def _gt() -> dict:
     return {"images": [{"id": i, "file_name": f"{i}.png", "width": 432, "height": 432}
                        for i in (1, 2, 3)],
-            "categories": [{"id": 1, "name": "crater"}, {"id": 2, "name": "rock"},
-                           {"id": 3, "name": "artifact"}],
+            "categories": CATEGORIES,
             "annotations": [
                 _ann(1, 1, [10, 10, 100, 20]),
                 _ann(2, 1, [200, 200, 40, 20]),
