@@ -201,6 +201,45 @@ def test_snapped_rim_disparities_read_the_crest_not_the_flank():
     np.testing.assert_allclose(r0, 55.0)
 
 
+def _flank_cut_by_a_nearer_rise(h: int, w: int) -> np.ndarray:
+    """Far wall (5 px) above row 50, the crest's flank (9 px + 0.1 a row) on rows 50-53, then
+    a nearer rise that hides the rest of the flank (10.3 px + 0.1 a row) from row 54."""
+    rows = np.arange(h, dtype=float)[:, None]
+    d = np.where(rows < 50, 5.0, np.where(rows < 54, 9.0 + 0.1 * (rows - 50),
+                                          10.3 + 0.1 * (rows - 54)))
+    return d * np.ones((1, w))
+
+
+def test_the_crest_line_can_stop_at_a_nearer_edge_below_it():
+    disp = _flank_cut_by_a_nearer_rise(120, 40)
+    pts = np.array([[20.0, 52.0], [21.0, 52.0]])
+    d, rows = _rim_disparities(disp, pts, snap_px=6, stop_jump=0.08)
+    np.testing.assert_allclose(rows, 49.5)
+    np.testing.assert_allclose(d, 8.95, atol=1e-9)  # the flank alone, carried to the crest
+    mixed, _ = _rim_disparities(disp, pts, snap_px=6)  # the rise's rows in the line too
+    assert np.all(np.abs(mixed - 8.95) > 0.3)  # 8.60
+
+
+def test_the_crest_match_can_stop_at_a_nearer_edge_below_it():
+    left = _texture(120, 400, seed=5)
+    truth = _flank_cut_by_a_nearer_rise(120, 400)
+    right = _warp(left, truth)
+    us = np.arange(80.0, 320.0, 12.0)
+    crest = np.full(len(us), 49.5)
+    d = np.full(len(us), 8.3)
+    flat = np.tile([1.0, 0.0], (len(us), 1))
+    pair = (left.astype(np.uint8), right)
+    stop = LifterConfig(flank_stop_jump=0.08)
+    got = _match_crest(pair, us, crest, d, flat, stop, truth)
+    assert np.median(got) == pytest.approx(8.95, abs=0.05)
+    # a matcher smears the rise over rows, so its own map may show no step: the one-row
+    # matches do, and are cut there
+    own = _match_crest(pair, us, crest, d, flat, stop)
+    assert np.median(own) == pytest.approx(8.95, abs=0.05)
+    mixed = _match_crest(pair, us, crest, d, flat, LifterConfig(), truth)  # off by default
+    assert abs(np.median(mixed) - 8.95) > 0.2  # 8.64
+
+
 def test_rim_offset_moves_the_center_away_by_about_the_offset(crater_scene):
     """The occluding edge in front of the crest by k R: the center moves ~k R / (1 - R / rho)."""
     sc = crater_scene
