@@ -608,7 +608,7 @@ def _rim_disparities(
             continue
         r = r[r < h]
         if stop_jump is not None:  # the flank's rows only, down to a nearer edge
-            r = r[r < _first_rise(disp[:, col], r[0] - 1, r[-1] + 1, stop_jump)]
+            r = r[r < _first_rise(disp[:, col], int(np.floor(v)) + 1, r[-1] + 1, stop_jump)]
         d = _line_at(r, disp[r, col], v)
         if np.isfinite(d):
             out[i], rows_used[i] = d, v

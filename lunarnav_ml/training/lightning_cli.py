@@ -62,7 +62,7 @@ def moved_path(path: str, old_root: str, new_root: str) -> str:
     rel = os.path.relpath(os.path.normpath(path), os.path.normpath(old_root))
     if rel == os.curdir:
         return new_root
-    if rel == os.pardir or rel.startswith(os.pardir + os.sep) or os.path.isabs(rel):
+    if rel == os.pardir or rel.startswith(os.pardir + os.sep):  # outside the old root
         return path
     return os.path.join(new_root, rel)
 
