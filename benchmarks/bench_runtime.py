@@ -22,6 +22,12 @@ count, through onnxruntime and PyTorch:
 
     .venv/bin/python benchmarks/bench_runtime.py peak --threads 1 2
 
+Where int8 gains and where it does not: onnxruntime's profiler per module (stem, each
+backbone stage, each neck and head block), fp32 against int8, network only:
+
+    .venv/bin/python benchmarks/bench_runtime.py stages --checkpoint lunarnav_ml/weights/small.pt \
+        --sizes 1024 --calib data/val
+
 Latency is end to end per image (letterbox + network + decoding + NMS at score 0.25), batch 1,
 median and p90 over ``--runs`` calls after warm-up. GFLOP/s = conv FLOPs (2 per MAC) / median.
 """
@@ -40,6 +46,7 @@ from lunarnav_ml.export.bench import (
     bench_torch,
     conv_flops,
     random_detector,
+    stage_times,
     synthetic_frame,
     time_calls,
 )
@@ -206,6 +213,31 @@ def run_peak(args: argparse.Namespace) -> None:
                               "gflops": round(gflops, 1)}), flush=True)
 
 
+def run_stages(args: argparse.Namespace) -> None:
+    """Kernel time per module, fp32 and int8, of a checkpoint or an untrained preset."""
+    parts = (load_parts(args.checkpoint) if args.checkpoint is not None
+             else random_detector(args.preset, img_size=min(args.sizes)))
+    size0 = parts.img_size[0]
+    calib = (load_calibration_images(args.calib, args.n_calib) if args.calib
+             else [synthetic_frame(size0, seed=s) for s in range(16)])
+    with tempfile.TemporaryDirectory() as tmp:
+        fp32, int8 = export_pair(parts, Path(tmp), calib, size0)
+        for size in args.sizes:
+            (f_stage, f_op), (q_stage, q_op) = (stage_times(p, size, args.threads, runs=args.runs)
+                                                for p in (fp32, int8))
+            print(f"\n{parts.name}, {size} px, {args.threads} thread(s), kernel ms per run "
+                  f"(mean of {args.runs})\n")
+            print("| module | fp32 ms | int8 ms | int8 speed-up |\n|---|---|---|---|")
+            for group in sorted(set(f_stage) | set(q_stage), key=lambda g: -f_stage.get(g, 0)):
+                a, b = f_stage.get(group, 0.0), q_stage.get(group, 0.0)
+                print(f"| {group} | {a:.1f} | {b:.1f} | {a / b if b else float('inf'):.2f}x |")
+            a, b = sum(f_stage.values()), sum(q_stage.values())
+            print(f"| **all** | {a:.1f} | {b:.1f} | {a / b:.2f}x |")
+            for name, ops in (("fp32", f_op), ("int8", q_op)):
+                top = sorted(ops.items(), key=lambda kv: -kv[1])[:8]
+                print(f"\n{name} by operator: " + ", ".join(f"{k} {v:.1f}" for k, v in top))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="mode", required=True)
@@ -244,6 +276,17 @@ def main() -> None:
     peak.add_argument("--n", type=int, default=2048, help="matrix side")
     peak.add_argument("--runs", type=int, default=7)
     peak.set_defaults(func=run_peak)
+    stg = sub.add_parser("stages", help="kernel time per module, fp32 against int8 (profiler)")
+    src = stg.add_mutually_exclusive_group(required=True)
+    src.add_argument("--checkpoint", type=Path, help="a trained checkpoint")
+    src.add_argument("--preset", help="an untrained preset (the arithmetic is the same)")
+    stg.add_argument("--sizes", type=int, nargs="+", default=[1024])
+    stg.add_argument("--threads", type=int, default=1)
+    stg.add_argument("--runs", type=int, default=5)
+    stg.add_argument("--calib", type=Path, default=None,
+                     help="calibration dataset folder (default: synthetic noise frames)")
+    stg.add_argument("--n-calib", type=int, default=16)
+    stg.set_defaults(func=run_stages)
     args = parser.parse_args()
     args.func(args)
 

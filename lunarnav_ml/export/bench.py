@@ -7,8 +7,12 @@ letterbox + network + decoding + NMS; ``network`` is the graph alone (for GFLOP/
 
 from __future__ import annotations
 
+import json
 import os
+import re
+import tempfile
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +26,7 @@ from lunarnav_ml.errors import InputError
 from lunarnav_ml.runtime import OnnxDetector
 from lunarnav_ml.runtime import metadata as md
 from lunarnav_ml.runtime.preprocess import prepare_batch
+from lunarnav_ml.runtime.session import session_options
 
 CLASS_NAMES = ("crater", "rock", "artifact")
 
@@ -85,6 +90,57 @@ def bench_onnx(path: str | os.PathLike, size: int, threads: int = 1, *, runs: in
         batch, _ = det.preprocess([frame])
         return time_calls(lambda: det.forward(batch), runs, warmup)
     return time_calls(lambda: det.predict([frame], conf_thres=conf_thres), runs, warmup)
+
+
+_SCOPE = re.compile(r"/model/(backbone|neck|head)/([^/]+)(/)?")
+
+
+def stage_of(node: str) -> str:
+    """The module a profiled node belongs to, from the scope in its name: ``backbone/stem``,
+    ``neck/td3``, ``head/convs.0``; ``neck (joins)`` for a node directly in a part (its
+    concatenations and resizes); ``other`` for the rest (the input's quantization, layout
+    reorders named after no module, the box decoding)."""
+    m = _SCOPE.search(node)
+    if m is None:
+        return "other"
+    return f"{m.group(1)}/{m.group(2)}" if m.group(3) else f"{m.group(1)} (joins)"
+
+
+def stage_times(path: str | os.PathLike, size: int, threads: int = 1, *, runs: int = 5,
+                warmup: int = 1) -> tuple[dict[str, float], dict[str, float]]:
+    """Kernel time per module and per operator of an exported model, from onnxruntime's
+    profiler, network only, batch 1 at a size x size input.
+
+    Returns:
+        (ms per :func:`stage_of` group, ms per optimized operator type), each a mean per run;
+        both sum to the kernel time of a run (the wall time less the executor's overhead).
+    """
+    if runs < 1 or warmup < 0:
+        raise ValueError(f"runs must be >= 1 and warmup >= 0, got {runs}, {warmup}")
+    det = OnnxDetector(path, threads=threads, img_size=size)
+    batch, _ = det.preprocess([synthetic_frame(size)])
+    with tempfile.TemporaryDirectory(prefix="lunarnav_profile_") as tmp:
+        opts = session_options(threads)
+        opts.enable_profiling = True
+        opts.profile_file_prefix = str(Path(tmp) / "ort")
+        det.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        for _ in range(warmup):
+            det.forward(batch)
+        for _ in range(runs):
+            det.forward(batch)
+        events = json.loads(Path(det.session.end_profiling()).read_text())
+    # timestamps count from the session's start: the timed runs are the last ``runs`` runs
+    run_starts = sorted(e["ts"] for e in events if e["name"] == "model_run")
+    t0 = run_starts[warmup] if len(run_starts) > warmup else 0
+    by_stage: Counter[str] = Counter()
+    by_op: Counter[str] = Counter()
+    for e in events:
+        if e.get("cat") != "Node" or not e["name"].endswith("_kernel_time") or e["ts"] < t0:
+            continue
+        name = e["name"][: -len("_kernel_time")]
+        by_stage[stage_of(name)] += e["dur"] / 1e3 / runs
+        by_op[e.get("args", {}).get("op_name", "?")] += e["dur"] / 1e3 / runs
+    return dict(by_stage), dict(by_op)
 
 
 def bench_torch(parts: Any, size: int, threads: int = 1, *, runs: int = 10, warmup: int = 2,

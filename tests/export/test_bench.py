@@ -11,6 +11,8 @@ from lunarnav_ml.export.bench import (
     bench_torch,
     conv_flops,
     random_detector,
+    stage_of,
+    stage_times,
     synthetic_frame,
     time_calls,
 )
@@ -64,3 +66,22 @@ def test_synthetic_frame_is_textured_rgb():
     frame = synthetic_frame(64, seed=2)
     assert frame.shape == (64, 64, 3) and frame.dtype == np.uint8 and frame.std() > 20
     np.testing.assert_array_equal(frame, synthetic_frame(64, seed=2))
+
+
+def test_stage_of_names_the_module():
+    assert stage_of("/model/backbone/stages.0/down/down.2/Relu_output_0_nchwc") \
+        == "backbone/stages.0"
+    assert stage_of("/model/backbone/stem/stem.0/Conv_token_23") == "backbone/stem"
+    assert stage_of("/model/head/convs.1/convs.1.0/Conv") == "head/convs.1"
+    assert stage_of("/model/neck/Concat_1") == "neck (joins)"
+    assert stage_of("reorder_token_7") == "other"
+
+
+def test_stage_times_split_the_network(onnx_path):
+    by_stage, by_op = stage_times(onnx_path, 64, runs=2, warmup=1)
+    assert {"backbone/stem", "backbone/stages.0", "backbone/stages.4"} <= set(by_stage)
+    assert any(k.startswith("head/") for k in by_stage)
+    assert sum(by_stage.values()) == pytest.approx(sum(by_op.values()))
+    assert by_op["Conv"] > 0 and all(v >= 0 for v in by_stage.values())
+    with pytest.raises(ValueError):
+        stage_times(onnx_path, 64, runs=0)
