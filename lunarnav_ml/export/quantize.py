@@ -7,7 +7,9 @@ last 1x1 convolutions stay fp32: they turn logits into pixel coordinates, where 
 would move boxes by whole pixels, and they cost little. Mish activations stay fp32 too
 (onnxruntime has no integer Mish; see :func:`mish_nodes`), and so does the input convolution
 with its activation (:func:`input_conv_nodes`): with three input channels an integer kernel
-is slower than the float one, and the image itself is the least quantizable tensor.
+is slower than the float one, and the image itself is the least quantizable tensor. A 6x6
+stride-2 input convolution (the ``small-relu-s2`` stem) is first rewritten as a space-to-depth
+of the image and a 3x3 convolution on its twelve channels, which is quantized with the rest.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from onnxruntime.quantization import (
 )
 
 from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.export.graph_passes import space_to_depth_input_convs
 from lunarnav_ml.export.onnx_meta import read_metadata, set_metadata
 from lunarnav_ml.runtime import metadata as md
 from lunarnav_ml.runtime.preprocess import prepare_batch
@@ -154,6 +157,7 @@ def quantize_int8(fp32_path: str | os.PathLike, out_path: str | os.PathLike,
     meta = read_metadata(model, str(fp32_path))
     if meta.precision != "fp32":
         raise InputError(f"{fp32_path}: expected an fp32 export, got precision {meta.precision}")
+    space_to_depth_input_convs(model)  # a stride-2 stem (small-relu-s2) runs int8 this way
     _name_nodes(model)
     with tempfile.TemporaryDirectory(prefix="lunarnav_quant_") as tmp:
         src, dst = Path(tmp) / "fp32.onnx", Path(tmp) / "int8.onnx"

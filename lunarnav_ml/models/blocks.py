@@ -22,16 +22,17 @@ def make_act(name: str) -> nn.Module:
 
 
 class ConvBNAct(nn.Sequential):
-    """Conv2d (no bias, 'same' padding) -> BatchNorm2d -> activation.
+    """Conv2d (no bias, 'same' padding unless ``p`` is given) -> BatchNorm2d -> activation.
 
     Shape:
         - Input: :math:`(B, C_{in}, H, W)`
         - Output: :math:`(B, C_{out}, H / s, W / s)` with ``s`` the stride.
     """
 
-    def __init__(self, c_in: int, c_out: int, k: int = 1, s: int = 1, act: str = "mish") -> None:
+    def __init__(self, c_in: int, c_out: int, k: int = 1, s: int = 1, act: str = "mish",
+                 p: int | None = None) -> None:
         super().__init__(
-            nn.Conv2d(c_in, c_out, k, s, padding=k // 2, bias=False),
+            nn.Conv2d(c_in, c_out, k, s, padding=k // 2 if p is None else p, bias=False),
             nn.BatchNorm2d(c_out, eps=1e-3, momentum=0.1),
             make_act(act),
         )

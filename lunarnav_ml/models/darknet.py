@@ -15,20 +15,34 @@ class CSPDarknet(nn.Module):
         channels: stem width then the five stage widths (YOLOv4: 32, 64, 128, 256, 512, 1024).
         blocks: residual units per stage (YOLOv4: 1, 2, 8, 8, 4).
         act: activation name.
+        stem: ``"full"``, YOLOv4's 3x3 convolution at full resolution before stage 0; or
+            ``"s2"``, a 6x6 stride-2 convolution (``2 * channels[0]`` wide, YOLOv5's) and a
+            3x3 convolution to ``channels[1]`` in place of that stem and all of stage 0: no
+            layer at full resolution and no 12-channel layer at half, which onnxruntime's
+            integer convolutions run slower than fp32 (the int8 export reads the 6x6
+            convolution as a space-to-depth input: ``export.graph_passes``).
 
     Shape:
         - Input: :math:`(B, 3, H, W)`, H and W multiples of 32.
         - Output: three maps at strides 8, 16, 32 with ``channels[3:]`` channels.
     """
 
-    def __init__(self, channels: tuple[int, ...], blocks: tuple[int, ...], act: str = "mish"):
+    def __init__(self, channels: tuple[int, ...], blocks: tuple[int, ...], act: str = "mish",
+                 stem: str = "full"):
         super().__init__()
         if len(channels) != 6 or len(blocks) != 5:
             raise ValueError(f"CSPDarknet needs 6 widths and 5 block counts, got {channels}, {blocks}")
-        self.stem = ConvBNAct(3, channels[0], 3, act=act)
-        self.stages = nn.ModuleList(
-            CSPStage(channels[i], channels[i + 1], blocks[i], act) for i in range(5)
-        )
+        if stem not in ("full", "s2"):
+            raise ValueError(f"stem: expected 'full' or 's2', got {stem!r}")
+        stages: list[nn.Module] = [
+            CSPStage(channels[i], channels[i + 1], blocks[i], act) for i in range(5)]
+        if stem == "full":
+            self.stem: nn.Module = ConvBNAct(3, channels[0], 3, act=act)
+        else:
+            self.stem = nn.Sequential(ConvBNAct(3, 2 * channels[0], 6, 2, act, p=2),
+                                      ConvBNAct(2 * channels[0], channels[1], 3, act=act))
+            stages[0] = nn.Identity()
+        self.stages = nn.ModuleList(stages)
         self.out_channels = tuple(channels[3:])
         self.strides = (8, 16, 32)
 

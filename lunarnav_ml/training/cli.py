@@ -1,5 +1,5 @@
-"""``lunarnav train`` (the LightningCLI of train.py), ``lunarnav detect`` and
-``lunarnav average``."""
+"""``lunarnav train`` (the LightningCLI of train.py), ``lunarnav detect``,
+``lunarnav average`` and ``lunarnav distill-stem``."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``train``, ``detect`` and ``average`` subcommands."""
+    """Add the ``train``, ``detect``, ``average`` and ``distill-stem`` subcommands."""
     p = subparsers.add_parser(
         "train", add_help=False, help="train the detector (LightningCLI; try 'train fit --help')",
         description="Forwards its arguments to the Lightning CLI of train.py, e.g. "
@@ -58,6 +58,31 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--half", action="store_true",
                    help="store the weights in float16, as the shipped files are")
     p.set_defaults(func=run_average)
+
+    p = subparsers.add_parser(
+        "distill-stem", help="give a trained detector the stride-2 stem of small-relu-s2",
+        description="Trains a small-relu-s2 detector from a trained small-relu one (the "
+                    "teacher): every weight but the stem's is copied, and the new stem is "
+                    "trained on unlabelled images to reproduce first the teacher's stage-0 "
+                    "features, then its outputs. Its int8 export runs 2.5-2.7x faster than "
+                    "fp32 on a Xeon with AMX, small-relu's 1.9-2.0x (BENCHMARKS.md, issue 8).")
+    p.add_argument("--teacher", type=Path, default=DEFAULT_WEIGHTS,
+                   help="trained small-relu checkpoint or slim weights (default: the shipped)")
+    p.add_argument("--images", type=Path, nargs="+", required=True,
+                   help="datasets (annotations.json or its folder) or image folders; no "
+                        "labels are read. Use training splits, not a set you will test on")
+    p.add_argument("--out", type=Path, required=True, help="slim weights file to write (.pt)")
+    p.add_argument("--max-images", type=int, default=2000,
+                   help="images drawn at random from --images (all held in memory)")
+    p.add_argument("--feature-steps", type=int, default=1500)
+    p.add_argument("--output-steps", type=int, default=400)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
+    p.add_argument("--half", action="store_true", help="store the weights in float16")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_distill_stem)
 
 
 def run_train(args: argparse.Namespace) -> int:
@@ -104,4 +129,31 @@ def run_average(args: argparse.Namespace) -> int:
     check_destination(args.out)
     average_detectors(args.weights).save(args.out, half=args.half)
     print(f"lunarnav average: {len(args.weights)} detectors -> {args.out}")
+    return 0
+
+
+def run_distill_stem(args: argparse.Namespace) -> int:
+    """Distil the stride-2 stem into ``--out`` (written under a temporary name, then renamed)."""
+    import torch
+
+    from lunarnav_ml.training.api import load_detector
+    from lunarnav_ml.training.distill import distill_stem, load_inputs
+    from lunarnav_ml.utils.atomic import check_destination
+
+    for name in ("max_images", "batch"):
+        if getattr(args, name) < 1:
+            raise ConfigError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    check_destination(args.out)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    teacher = load_detector(args.teacher)
+    images = load_inputs(args.images, teacher.img_size, args.max_images, args.seed)
+    student, report = distill_stem(teacher, images, feature_steps=args.feature_steps,
+                                   output_steps=args.output_steps, batch=args.batch, lr=args.lr,
+                                   held_out=min(32, max(1, len(images) // 5)), seed=args.seed,
+                                   progress=not args.quiet)
+    student.save(args.out, half=args.half)
+    print(f"lunarnav distill-stem: {len(images)} images, {report.steps[0]} + {report.steps[1]} "
+          f"steps; held-out relative error: stem features {report.feature_rel_err:.4f}, "
+          f"outputs {report.output_rel_err:.4f} (a fifth of the images, at most 32) -> {args.out}")
     return 0

@@ -145,3 +145,18 @@ def test_relu_folds_into_integer_convs_leaky_does_not(tmp_path):
     assert leaky["QLinearConv"] == relu["QLinearConv"] > 60
     assert leaky["QLinearLeakyRelu"] == leaky["QLinearConv"]
     assert not {op for op in relu if "Relu" in op or "LeakyRelu" in op}
+
+
+def test_stride2_stem_runs_integer_through_space_to_depth(tmp_path):
+    # small-relu-s2's 6x6 stride-2 stem: quantized as a space-to-depth and an integer 3x3
+    # convolution on 12 channels, no float convolution reading the image
+    ops = _optimized_int8_ops("small-relu-s2", tmp_path)
+    assert ops["SpaceToDepth"] == 1 and ops["QLinearConv"] > 60
+    graph = onnx.load(tmp_path / "small-relu-s2_int8.onnx").graph
+    assert not [n for n in graph.node if n.op_type == "Conv" and n.input[0] == "images"]
+    s2d = next(n for n in graph.node if n.op_type == "SpaceToDepth")
+    assert s2d.input[0] == "images"
+    fp32, int8 = (OnnxDetector(tmp_path / f"small-relu-s2{s}.onnx") for s in ("", "_int8"))
+    batch, _ = fp32.preprocess([synthetic_frame(64, seed=9)])
+    a, b = fp32.forward(batch), int8.forward(batch)
+    assert np.median(np.abs(a[..., :2] - b[..., :2])) < 2.0
