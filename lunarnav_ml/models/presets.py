@@ -73,7 +73,7 @@ PRESETS: dict[str, Preset] = {
     # small-relu-s2 is small-relu with a stride-2 stem in place of the full-resolution stem
     # and stage 0, whose thin layers onnxruntime's integer convolutions run no faster than
     # fp32: its int8 model runs 2.5-2.8x faster than fp32 on a Xeon with AMX (small-relu
-    # 1.9-2.0x) and its fp32 model 15 % faster (BENCHMARKS.md).
+    # 1.8-2.0x; BENCHMARKS.md). No weights are shipped for it yet (lunarnav distill-stem).
     "small-relu-s2": Preset(depth=0.33, width=0.375, backbone_act="relu", neck_act="relu",
                             scale_xy=(2.0, 2.0, 2.0), stem="s2"),
     "medium": Preset(depth=0.67, width=0.75),
