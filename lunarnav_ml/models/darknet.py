@@ -34,15 +34,15 @@ class CSPDarknet(nn.Module):
             raise ValueError(f"CSPDarknet needs 6 widths and 5 block counts, got {channels}, {blocks}")
         if stem not in ("full", "s2"):
             raise ValueError(f"stem: expected 'full' or 's2', got {stem!r}")
-        stages: list[nn.Module] = [
-            CSPStage(channels[i], channels[i + 1], blocks[i], act) for i in range(5)]
         if stem == "full":
             self.stem: nn.Module = ConvBNAct(3, channels[0], 3, act=act)
+            first: nn.Module = CSPStage(channels[0], channels[1], blocks[0], act)
         else:
             self.stem = nn.Sequential(ConvBNAct(3, 2 * channels[0], 6, 2, act, p=2),
                                       ConvBNAct(2 * channels[0], channels[1], 3, act=act))
-            stages[0] = nn.Identity()
-        self.stages = nn.ModuleList(stages)
+            first = nn.Identity()
+        self.stages = nn.ModuleList(
+            [first, *(CSPStage(channels[i], channels[i + 1], blocks[i], act) for i in range(1, 5))])
         self.out_channels = tuple(channels[3:])
         self.strides = (8, 16, 32)
 

@@ -65,7 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "teacher): every weight but the stem's is copied, and the new stem is "
                     "trained on unlabelled images to reproduce first the teacher's stage-0 "
                     "features, then its outputs. Its int8 export runs 2.5-2.8x faster than "
-                    "fp32 on a Xeon with AMX, small-relu's 1.9-2.0x (BENCHMARKS.md, issue 8).")
+                    "fp32 on a Xeon with AMX, small-relu's 1.8-2.0x (BENCHMARKS.md, issue 8).")
     p.add_argument("--teacher", type=Path, default=DEFAULT_WEIGHTS,
                    help="trained small-relu checkpoint or slim weights (default: the shipped)")
     p.add_argument("--images", type=Path, nargs="+", required=True,

@@ -52,13 +52,13 @@ def student_from(teacher: Detector, preset: str) -> YOLO:
     model = teacher.model
     student = build_model(preset, len(teacher.class_names), model.anchors.clone())
     own, theirs = student.state_dict(), model.state_dict()
-    new = [k for k in own if k not in theirs or theirs[k].shape != own[k].shape]
-    outside = [k for k in new if not k.startswith(("backbone.stem.", "backbone.stages.0."))]
+    shared = {k for k in own if k in theirs and theirs[k].shape == own[k].shape}
+    outside = [k for k in own if k not in shared
+               and not k.startswith(("backbone.stem.", "backbone.stages.0."))]
     if outside:
         raise ConfigError(f"preset {preset!r} differs from the teacher's "
                           f"({teacher.preset!r}) outside the stem: {outside[:3]}")
-    student.load_state_dict({k: v for k, v in theirs.items() if k in own and k not in new},
-                            strict=False)
+    student.load_state_dict({k: theirs[k] for k in shared}, strict=False)
     return student
 
 
