@@ -74,10 +74,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="slim weights file to write (.pt)")
     p.add_argument("--max-images", type=int, default=2000,
                    help="images drawn at random from --images (all held in memory)")
+    p.add_argument("--student", type=Path, default=None,
+                   help="start from this small-relu-s2 checkpoint or slim weights (e.g. one "
+                        "fine-tuned with labels) instead of the teacher with a fresh stem")
     p.add_argument("--feature-steps", type=int, default=1500)
     p.add_argument("--output-steps", type=int, default=400)
+    p.add_argument("--whole-steps", type=int, default=0,
+                   help="steps of a third phase that trains every weight on the teacher's "
+                        "detections (default 0: the stem alone)")
     p.add_argument("--batch", type=int, default=16)
-    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--lr", type=float, default=2e-3, help="peak rate of the stem phases")
+    p.add_argument("--whole-lr", type=float, default=1e-4, help="peak rate of the third phase")
+    p.add_argument("--bf16", action="store_true",
+                   help="bfloat16 autocast (faster on CPUs with AVX512-BF16 or AMX)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     p.add_argument("--half", action="store_true", help="store the weights in float16")
@@ -147,13 +156,18 @@ def run_distill_stem(args: argparse.Namespace) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     teacher = load_detector(args.teacher)
+    start = None if args.student is None else load_detector(args.student)
     images = load_inputs(args.images, teacher.img_size, args.max_images, args.seed)
     student, report = distill_stem(teacher, images, feature_steps=args.feature_steps,
                                    output_steps=args.output_steps, batch=args.batch, lr=args.lr,
                                    held_out=min(32, max(1, len(images) // 5)), seed=args.seed,
+                                   student=start, whole_steps=args.whole_steps,
+                                   whole_lr=args.whole_lr, bf16=args.bf16,
                                    progress=not args.quiet)
     student.save(args.out, half=args.half)
-    print(f"lunarnav distill-stem: {len(images)} images, {report.steps[0]} + {report.steps[1]} "
-          f"steps; held-out relative error: stem features {report.feature_rel_err:.4f}, "
-          f"outputs {report.output_rel_err:.4f} (a fifth of the images, at most 32) -> {args.out}")
+    steps = " + ".join(str(n) for n in report.steps)
+    print(f"lunarnav distill-stem: {len(images)} images, {steps} steps; held-out relative "
+          f"error: stem features {report.feature_rel_err:.4f}, "
+          f"outputs {report.output_rel_err:.4f}; detection loss {report.detection_loss:.4f} "
+          f"(a fifth of the images, at most 32) -> {args.out}")
     return 0

@@ -1,6 +1,7 @@
 """lunarnav distill-stem: the stride-2 stem trained to reproduce a small-relu teacher."""
 
 import argparse
+import copy
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ from lunarnav_ml.export.bench import random_detector, synthetic_frame
 from lunarnav_ml.runtime.preprocess import prepare_batch
 from lunarnav_ml.training import cli
 from lunarnav_ml.training.api import Detector, load_detector
-from lunarnav_ml.training.distill import distill_stem, student_from
+from lunarnav_ml.training.distill import detection_kd_loss, distill_stem, student_from
 
 
 @pytest.fixture(scope="module")
@@ -51,6 +52,49 @@ def test_distillation_learns_the_teacher_and_is_seeded(teacher, images):
     assert all(p.requires_grad is False for p in teacher.model.parameters())
 
 
+def test_detection_loss_is_least_at_the_teacher_and_ignores_empty_cells():
+    g = torch.Generator().manual_seed(0)
+    # 2 anchors, 3 classes: 16 channels; one scale of 4 x 4 cells
+    teacher = [torch.randn(1, 16, 4, 4, generator=g)]
+    teacher[0][:, [4, 12]] = -12.0  # every anchor empty ...
+    teacher[0][0, 4, 1, 2] = 6.0  # ... but anchor 0 at row 1, column 2
+    at = detection_kd_loss(teacher, teacher, 2)
+    nudged = [t + 0.3 * torch.randn(t.shape, generator=g) for t in teacher]
+    assert float(detection_kd_loss(nudged, teacher, 2)) > float(at)
+    box = lambda row, col: [t.clone().index_put_((torch.tensor([0]), torch.tensor([0]),
+                                                  torch.tensor([row]), torch.tensor([col])),
+                                                 torch.tensor([3.0]), accumulate=True)
+                            for t in teacher]
+    full, empty = (float(detection_kd_loss(box(r, c), teacher, 2)) - float(at)
+                   for r, c in ((1, 2), (3, 3)))
+    assert full > 1.0 and empty < 1e-3 * full  # tx moved by 3: counts only where an object is
+    student = [t.clone().requires_grad_(True) for t in teacher]
+    detection_kd_loss(student, teacher, 2).backward()
+    assert float(student[0].grad.abs().max()) < 1e-6  # the teacher is a minimum
+
+
+def test_whole_phase_trains_every_weight_from_a_given_student(teacher, images):
+    start = distill_stem(teacher, images, feature_steps=3, output_steps=0, batch=4, held_out=8,
+                         seed=1, progress=False)[0]
+    before = {k: v.clone() for k, v in start.model.state_dict().items()}
+    run = lambda: distill_stem(teacher, images, feature_steps=0, output_steps=0, whole_steps=4,
+                               batch=4, held_out=8, seed=2, whole_lr=1e-3, bf16=True,
+                               student=Detector(copy.deepcopy(start.model), 64,
+                                                start.class_names, start.preset),
+                               progress=False)
+    (a, report), (b, _) = run(), run()
+    assert report.steps == (0, 0, 4)
+    after = a.model.state_dict()
+    moved = {k.split(".")[0] for k in after
+             if after[k].is_floating_point() and not torch.equal(after[k], before[k])}
+    assert moved == {"backbone", "neck", "head"}
+    held = [k for k in after if k.endswith(("running_mean", "running_var"))]
+    assert held and all(torch.equal(after[k], before[k]) for k in held)
+    assert all(torch.equal(v, w) for v, w in zip(after.values(), b.model.state_dict().values()))
+    with pytest.raises(ConfigError, match="student"):
+        distill_stem(teacher, images, student=teacher, held_out=8, progress=False)
+
+
 def test_bad_images_are_refused(teacher, images):
     bad = images.copy()
     bad[0, 0, 0, 0] = np.nan
@@ -78,6 +122,14 @@ def test_cli_writes_a_loadable_student(teacher, tmp_path):
     assert args.func(args) == 0
     student = load_detector(out)
     assert student.preset == "small-relu-s2" and student.img_size == 64
+    again = tmp_path / "again.pt"
+    args2 = parser.parse_args(["distill-stem", "--teacher", str(path), "--images", str(folder),
+                               "--out", str(again), "--student", str(out), "--feature-steps",
+                               "0", "--output-steps", "0", "--whole-steps", "2", "--batch", "2",
+                               "--bf16", "--quiet"])
+    assert args2.func(args2) == 0
+    trained = load_detector(again).model.state_dict().values()
+    assert not all(torch.equal(v, w) for v, w in zip(trained, student.model.state_dict().values()))
     args.out = tmp_path  # a folder: refused before any work
     with pytest.raises(InputError, match="existing folder"):
         args.func(args)
