@@ -64,7 +64,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Trains a small-relu-s2 detector from a trained small-relu one (the "
                     "teacher): every weight but the stem's is copied, and the new stem is "
                     "trained on unlabelled images to reproduce first the teacher's stage-0 "
-                    "features, then its outputs. Its int8 export runs 2.5-2.8x faster than "
+                    "features, then its outputs; an optional third phase (--whole-steps) trains "
+                    "every weight on the teacher's detections, from the new model or from "
+                    "--student. Its int8 export runs 2.5-2.8x faster than "
                     "fp32 on a Xeon with AMX, small-relu's 1.8-2.0x (BENCHMARKS.md, issue 8).")
     p.add_argument("--teacher", type=Path, default=DEFAULT_WEIGHTS,
                    help="trained small-relu checkpoint or slim weights (default: the shipped)")
