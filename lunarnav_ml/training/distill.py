@@ -33,7 +33,7 @@ from torch import nn
 
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.models import build_model
-from lunarnav_ml.models.decode import split_raw
+from lunarnav_ml.losses import detection_kd_loss
 from lunarnav_ml.models.yolo import YOLO
 from lunarnav_ml.training.api import Detector
 
@@ -72,33 +72,6 @@ def student_from(teacher: Detector, preset: str) -> YOLO:
 
 def _teacher_stem(model: YOLO, x: torch.Tensor) -> torch.Tensor:
     return model.backbone.stages[0](model.backbone.stem(x))
-
-
-def detection_kd_loss(student: list[torch.Tensor], teacher: list[torch.Tensor],
-                      num_anchors: int) -> torch.Tensor:
-    """How far the student's raw head maps are from the teacher's, weighed by what a detection
-    needs: objectness by binary cross-entropy against the teacher's probability at every cell
-    and anchor; class logits (cross-entropy against the teacher's probabilities) and raw boxes
-    (squared error) at each cell and anchor in proportion to the teacher's objectness there.
-    Each scale's terms are summed over its cells and divided by its total teacher objectness
-    (at least 1), so the many empty cells, where a raw-map error does not change a detection,
-    do not swamp the few that hold one. Computed in float32.
-
-    Shape:
-        - student, teacher: per scale :math:`(B, A (5 + K), H, W)`
-        - Output: scalar
-    """
-    total = torch.zeros(())
-    bce = nn.functional.binary_cross_entropy_with_logits
-    for s, t in zip(student, teacher):
-        s, t = split_raw(s.float(), num_anchors), split_raw(t.float(), num_anchors)
-        w = t[..., 4].sigmoid()
-        mass = w.sum().clamp(min=1.0)
-        obj = bce(s[..., 4], w, reduction="sum")
-        cls = (bce(s[..., 5:], t[..., 5:].sigmoid(), reduction="none").sum(-1) * w).sum()
-        box = (((s[..., :4] - t[..., :4]) ** 2).sum(-1) * w).sum()
-        total = total + (obj + cls + box) / mass
-    return total
 
 
 def _rel_err(a: torch.Tensor | list, b: torch.Tensor | list) -> float:

@@ -16,7 +16,7 @@ from torch import nn
 from lunarnav_ml.data.coco import default_class_names
 from lunarnav_ml.data.letterbox import LetterboxInfo
 from lunarnav_ml.errors import ConfigError
-from lunarnav_ml.losses import YOLOLoss
+from lunarnav_ml.losses import YOLOLoss, detection_kd_loss
 from lunarnav_ml.losses.yolo_loss import PreparedTargets
 from lunarnav_ml.models import build_model, decode, postprocess
 from lunarnav_ml.training.checkpoint import load_weights
@@ -64,6 +64,13 @@ class DetectorModule(L.LightningModule):
             (inductor), or a backend's name. On a 2-core Xeon bf16 small-relu steps run 1.12x
             faster in a Lightning run after about a minute of compilation at the first step:
             it pays off in runs longer than about ten minutes.
+        teacher: a trained detector (``.ckpt`` or ``.pt``) with the same classes, anchors and
+            strides whose detections on each training batch are a second target
+            (:func:`~lunarnav_ml.losses.detection_kd_loss`, logged as ``train/kd``): it keeps a
+            model that differs from the teacher in a few layers (``lunarnav distill-stem``)
+            close to what the teacher detects while the labels teach it. Not saved in the
+            checkpoints.
+        teacher_weight: the distillation term's weight in the loss.
     """
 
     def __init__(self, preset: str = "nano", num_classes: int = 3,
@@ -77,10 +84,13 @@ class DetectorModule(L.LightningModule):
                  multiscale: tuple[int, int] | None = None,
                  init_from: str | None = None, freeze_backbone: bool = False,
                  val_conf_thres: float = 0.001, val_iou_thres: float = 0.6,
-                 channels_last: bool | None = None, compile: bool | str = False) -> None:
+                 channels_last: bool | None = None, compile: bool | str = False,
+                 teacher: str | None = None, teacher_weight: float = 1.0) -> None:
         super().__init__()
         if optimizer not in ("adamw", "sgd"):
             raise ConfigError(f"optimizer must be 'adamw' or 'sgd', got {optimizer!r}")
+        if not teacher_weight >= 0:
+            raise ConfigError(f"teacher_weight must be >= 0, got {teacher_weight}")
         class_names = list(class_names or default_class_names(num_classes))
         if len(class_names) != num_classes:
             raise ConfigError(f"class_names has {len(class_names)} names for {num_classes} classes")
@@ -98,6 +108,7 @@ class DetectorModule(L.LightningModule):
         self._anchors_ready = anchors is not None
         self._channels_last = False  # decided at setup, when the device is known
         self._host_anchors = self.model.anchors.detach().clone()
+        self._teacher: list[nn.Module] = []  # a list: not a submodule, kept out of checkpoints
 
     # ---- set-up -------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -118,9 +129,29 @@ class DetectorModule(L.LightningModule):
             self.ema.to(memory_format=torch.channels_last)
         # the host copy of the anchors for host_targets (k-means and init_from are done)
         self._host_anchors = self.model.anchors.detach().cpu()
+        if self.hparams.get("teacher") and stage == "fit":
+            self._load_teacher(self.hparams.teacher)
         backend = self.hparams.get("compile")
         if backend and stage == "fit":  # in place: the state_dict keeps its keys
             self.model.compile(**({"backend": backend} if isinstance(backend, str) else {}))
+
+    def _load_teacher(self, path: str) -> None:
+        from lunarnav_ml.training.api import load_detector
+
+        teacher = load_detector(path).model
+        own = self.model
+        same = (teacher.anchors.shape == own.anchors.shape
+                and torch.allclose(teacher.anchors.cpu(), own.anchors.detach().cpu())
+                and list(teacher.strides) == list(own.strides)
+                and teacher.head.num_outputs == own.head.num_outputs)
+        if not same:
+            raise ConfigError(f"teacher {path}: its classes, anchors or strides differ from the "
+                              "model's (distillation compares the raw head maps cell by cell)")
+        device = own.anchors.device if self._trainer is None else self.trainer.strategy.root_device
+        teacher = teacher.to(device).eval().requires_grad_(False)
+        if self._channels_last:
+            teacher.to(memory_format=torch.channels_last)
+        self._teacher = [teacher]
 
     def _kmeans_anchors(self) -> None:
         dm = getattr(self.trainer, "datamodule", None) if self._trainer else None
@@ -195,7 +226,15 @@ class DetectorModule(L.LightningModule):
 
     def _losses(self, model: nn.Module, x: torch.Tensor, targets: list[dict] | PreparedTargets
                 ) -> dict[str, torch.Tensor]:
-        return self.loss(model(x), targets, model.anchors, model.strides, model.scale_xy)
+        raw = model(x)
+        losses = self.loss(raw, targets, model.anchors, model.strides, model.scale_xy)
+        if not self._teacher:
+            return losses
+        with torch.no_grad():
+            target = self._teacher[0](x)
+        kd = detection_kd_loss(raw, target, model.head.num_anchors)
+        return {**losses, "kd": kd.detach(),
+                "loss": losses["loss"] + self.hparams.teacher_weight * kd}
 
     def training_step(self, batch: Batch, batch_idx: int) -> torch.Tensor:
         x, targets = self._prepare(batch, train=True)

@@ -12,7 +12,8 @@ from lunarnav_ml.export.bench import random_detector, synthetic_frame
 from lunarnav_ml.runtime.preprocess import prepare_batch
 from lunarnav_ml.training import cli
 from lunarnav_ml.training.api import Detector, load_detector
-from lunarnav_ml.training.distill import detection_kd_loss, distill_stem, student_from
+from lunarnav_ml.losses import detection_kd_loss
+from lunarnav_ml.training.distill import distill_stem, student_from
 
 
 @pytest.fixture(scope="module")
