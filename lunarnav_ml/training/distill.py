@@ -32,8 +32,8 @@ import torch
 from torch import nn
 
 from lunarnav_ml.errors import ConfigError, InputError
-from lunarnav_ml.models import build_model
 from lunarnav_ml.losses import detection_kd_loss
+from lunarnav_ml.models import build_model
 from lunarnav_ml.models.yolo import YOLO
 from lunarnav_ml.training.api import Detector
 

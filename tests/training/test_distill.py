@@ -9,10 +9,10 @@ import torch
 
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.export.bench import random_detector, synthetic_frame
+from lunarnav_ml.losses import detection_kd_loss
 from lunarnav_ml.runtime.preprocess import prepare_batch
 from lunarnav_ml.training import cli
 from lunarnav_ml.training.api import Detector, load_detector
-from lunarnav_ml.losses import detection_kd_loss
 from lunarnav_ml.training.distill import distill_stem, student_from
 
 
