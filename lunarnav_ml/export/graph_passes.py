@@ -92,8 +92,9 @@ def space_to_depth_input_convs(model: onnx.ModelProto) -> int:
     A k x k stride-2 convolution (k = 2m, m odd, padding m - 1: 6x6 with 2, YOLOv5's stem) of
     a C-channel image of even sides equals an m x m stride-1 convolution (padding
     r = (m - 1) / 2) of its 4C-channel space-to-depth, with
-    ``W'[o, (2a + b) C + c, p, q] = W[o, c, 2p + a, 2q + b]`` (ONNX's SpaceToDepth channel order). The int8 model wants it so: onnxruntime's integer
-    convolution is slower than the float one on three input channels and fast on twelve.
+    ``W'[o, (2a + b) C + c, p, q] = W[o, c, 2p + a, 2q + b]`` (ONNX's SpaceToDepth channel
+    order). The int8 model wants it so: onnxruntime's integer convolution is slower than the
+    float one on three input channels and fast on twelve.
     Other input convolutions (odd kernels, stride 1, groups, dilation) are left as they are.
 
     Returns:

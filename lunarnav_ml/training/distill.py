@@ -161,16 +161,17 @@ def distill_stem(teacher: Detector, images: np.ndarray, preset: str = "small-rel
             target = _teacher_stem(t_model, x)
         return nn.functional.mse_loss(stem(x), target)
 
-    def output_loss(x: torch.Tensor) -> torch.Tensor:
-        with torch.no_grad():
-            target = t_model(x)
-        return sum(nn.functional.mse_loss(s.float(), t.float())
-                   for s, t in zip(student(x), target))
+    def against_teacher(compare):  # a loss on the raw head maps of student and teacher
+        def loss(x: torch.Tensor) -> torch.Tensor:
+            with torch.no_grad():
+                target = t_model(x)
+            return compare(student(x), target)
+        return loss
 
-    def whole_loss(x: torch.Tensor) -> torch.Tensor:
-        with torch.no_grad():
-            target = t_model(x)
-        return detection_kd_loss(student(x), target, student.head.num_anchors)
+    output_loss = against_teacher(lambda out, target: sum(
+        nn.functional.mse_loss(s.float(), t.float()) for s, t in zip(out, target)))
+    whole_loss = against_teacher(
+        lambda out, target: detection_kd_loss(out, target, student.head.num_anchors))
 
     student.eval()
     stem.train()
