@@ -41,8 +41,7 @@ from lunarnav_ml.training.api import Detector
 @dataclass(frozen=True)
 class DistillReport:
     """How close the student is to the teacher on the held-out images: relative errors (mean
-    squared error over the teacher's variance) and the detection loss (which includes the
-    entropy of the teacher's probabilities, so it is not 0 at the teacher: compare runs)."""
+    squared error over the teacher's variance) and the detection loss (0 at the teacher)."""
 
     feature_rel_err: float  # stem output vs the teacher's stage-0 output
     output_rel_err: float  # raw head maps
