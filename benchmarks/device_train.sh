@@ -30,6 +30,15 @@
 # Session 59 (H200, BUDGET_S=570; the same command from session 57's small.pt with
 # SEED_TRAIN=36000001 SEED_TRANSFER=37000011 and --data.weights [0.4,0.6]; not shipped, it lost
 # real craters): rendering 223 s, training 4 min 29 s, 1,103 steps.
+# Ready for the next lent GPU (session 63; CPU smoke run only, 2-core Xeon: 240 steps of 4 in 4.5
+# min, the tree's outputs/s62/kd.pt carried): the stride-2 student, `small.pt` as its teacher
+# beside the labels (issue 8, BENCHMARKS.md "The teacher's weight in the labelled loss"):
+#   carry outputs/s62/kd.pt and .gpu/site; OUT=$OUT BUDGET_S=570 SITE=$PWD/.gpu/site BENCH=0 \
+#       SEED_TRAIN=38000001 SEED_TRANSFER=39000011 EXTRA="--model.preset small-relu-s2 \
+#       --model.init_from outputs/s62/kd.pt --model.teacher lunarnav_ml/weights/small.pt \
+#       --model.teacher_weight 0.01" bash benchmarks/device_train.sh
+# (the CPU smoke: PY=.venv/bin/python WORKERS=2 N_TRAIN=16 N_TRANSFER=16 MONO_N=2 BUDGET_S=400
+# and "--trainer.accelerator cpu --trainer.precision 32 --data.batch_size 4" added to EXTRA).
 # Use new seeds next time (renders up to 37,000,011 are taken; 38000001 / 39000011 are not).
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
