@@ -89,6 +89,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--whole-lr", type=float, default=1e-4, help="peak rate of the third phase")
     p.add_argument("--bf16", action="store_true",
                    help="bfloat16 autocast (faster on CPUs with AVX512-BF16 or AMX)")
+    p.add_argument("--device", default="cpu",
+                   help="where the models run: cpu (default), cuda or cuda:N")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     p.add_argument("--half", action="store_true", help="store the weights in float16")
@@ -148,13 +150,14 @@ def run_distill_stem(args: argparse.Namespace) -> int:
     import torch
 
     from lunarnav_ml.training.api import load_detector
-    from lunarnav_ml.training.distill import distill_stem, load_inputs
+    from lunarnav_ml.training.distill import distill_stem, load_inputs, torch_device
     from lunarnav_ml.utils.atomic import check_destination
 
     for name in ("max_images", "batch"):
         if getattr(args, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     check_destination(args.out)
+    torch_device(args.device)  # before any work
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     teacher = load_detector(args.teacher)
@@ -165,7 +168,7 @@ def run_distill_stem(args: argparse.Namespace) -> int:
                                    held_out=min(32, max(1, len(images) // 5)), seed=args.seed,
                                    student=start, whole_steps=args.whole_steps,
                                    whole_lr=args.whole_lr, bf16=args.bf16,
-                                   progress=not args.quiet)
+                                   device=args.device, progress=not args.quiet)
     student.save(args.out, half=args.half)
     steps = " + ".join(str(n) for n in report.steps)
     print(f"lunarnav distill-stem: {len(images)} images, {steps} steps; held-out relative "

@@ -104,6 +104,20 @@ def test_bad_images_are_refused(teacher, images):
         distill_stem(teacher, bad, progress=False)
     with pytest.raises(ConfigError, match="held_out"):
         distill_stem(teacher, images[:4], held_out=8, progress=False)
+    with pytest.raises(ConfigError, match="'tpu'"):
+        distill_stem(teacher, images, held_out=8, device="tpu", progress=False)
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA device"):
+            distill_stem(teacher, images, held_out=8, device="cuda", progress=False)
+
+
+def test_an_explicit_cpu_device_changes_nothing(teacher, images):
+    run = lambda **kw: distill_stem(teacher, images, feature_steps=2, output_steps=0,
+                                    whole_steps=2, batch=4, held_out=8, seed=2, progress=False,
+                                    **kw)[0].model.state_dict()
+    a, b = run(), run(device="cpu:0")
+    assert all(torch.equal(v, w) for v, w in zip(a.values(), b.values()))
+    assert all(v.device.type == "cpu" for v in b.values())
 
 
 def test_cli_writes_a_loadable_student(teacher, tmp_path):
