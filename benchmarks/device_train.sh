@@ -39,6 +39,10 @@
 #       --model.teacher_weight 0.01" bash benchmarks/device_train.sh
 # (the CPU smoke: PY=.venv/bin/python WORKERS=2 N_TRAIN=16 N_TRANSFER=16 MONO_N=2 BUDGET_S=400
 # and "--trainer.accelerator cpu --trainer.precision 32 --data.batch_size 4" added to EXTRA).
+# The teacher-only phase runs there too, on the renders this script leaves in data/gpu (untried
+# on a GPU): lunarnav distill-stem --student outputs/s62/kd.pt --images data/gpu/train
+#   data/gpu/transfer --feature-steps 0 --output-steps 0 --whole-steps N --batch 64 --bf16
+#   --device cuda --half --out $OUT/kd_gpu.pt
 # Use new seeds next time (renders up to 37,000,011 are taken; 38000001 / 39000011 are not).
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
