@@ -39,17 +39,20 @@
 #       --model.teacher_weight 0.01" bash benchmarks/device_train.sh
 # (the CPU smoke: PY=.venv/bin/python WORKERS=2 N_TRAIN=16 N_TRANSFER=16 MONO_N=2 BUDGET_S=400
 # and "--trainer.accelerator cpu --trainer.precision 32 --data.batch_size 4" added to EXTRA).
-# The teacher-only phase runs there too, on the renders this script leaves in data/gpu (untried
-# on a GPU): lunarnav distill-stem --student outputs/s62/kd.pt --images data/gpu/train
-#   data/gpu/transfer --feature-steps 0 --output-steps 0 --whole-steps N --batch 64 --bf16
-#   --device cuda --half --out $OUT/kd_gpu.pt
+# DISTILL_STEPS=N puts the teacher-only phase first (`lunarnav distill-stem --whole-steps N` on the
+# GPU, from DISTILL_FROM, on the training renders; untried on a GPU, CPU smoke run only: 3 steps
+# of 4, 14 s), and the training starts from its result: add DISTILL_STEPS=<what fits a third of
+# the budget> DISTILL_FROM=outputs/s62/kd.pt to the command above.
 # Use new seeds next time (renders up to 37,000,011 are taken; 38000001 / 39000011 are not).
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
 # SEED_TRAIN / SEED_TRANSFER / SEED_MONO (the sources' render seeds, default the CPU runs' 0,
 # 5000011 and 9100003; session 51 rendered new ones), BENCH (0 skips the model-only speed),
 # PY (default python3), EXTRA (more `train.py fit` arguments for both runs, e.g. for a CPU smoke
-# run), TRAIN_ARGS (more arguments for the real run only, e.g. other --data.weights).
+# run), TRAIN_ARGS (more arguments for the real run only, e.g. other --data.weights),
+# DISTILL_STEPS (default 0: none), DISTILL_FROM (the small-relu-s2 student to start it from),
+# DISTILL_IMAGES (renders it holds in memory, default 4000), DISTILL_BATCH (default 64),
+# DISTILL_LR (default 1e-4).
 set -euo pipefail
 t0=$(date +%s)
 BUDGET_S=${BUDGET_S:-540}
@@ -122,12 +125,27 @@ fi
 wait $p1 && wait $p2 && wait $p3 || fail "rendering failed" "$DATA/train.log"
 log "rendered: $(du -sh "$DATA" | cut -f1)"
 
+init=()
+if [ "${DISTILL_STEPS:-0}" -gt 0 ]; then
+    dev=$("$PY" -c 'import torch; print("cuda" if torch.cuda.is_available() else "cpu")')
+    log "distil: $DISTILL_STEPS steps on the teacher's detections from ${DISTILL_FROM:?}, $dev"
+    lunarnav distill-stem --student "$DISTILL_FROM" --images "$DATA/train" "$DATA/transfer" \
+        --max-images "${DISTILL_IMAGES:-4000}" --feature-steps 0 --output-steps 0 \
+        --whole-steps "$DISTILL_STEPS" --batch "${DISTILL_BATCH:-64}" \
+        --whole-lr "${DISTILL_LR:-1e-4}" --bf16 --device "$dev" --seed "$SEED_TRAIN" --quiet \
+        --out "$OUT/distilled.pt" >"$OUT/distill.txt" 2>&1 || fail "distillation failed" \
+        "$OUT/distill.txt"
+    tail -n 1 "$OUT/distill.txt" | tee -a "$OUT/log.txt"
+    init=(--model.init_from "$OUT/distilled.pt")
+fi
+
 left=$((BUDGET_S - ($(date +%s) - t0) - 60))  # a minute for start-up, the last save, export
 [ "$left" -gt 30 ] || { log "no time left to train"; exit 1; }
 max_time=$(printf '00:00:%02d:%02d' $((left / 60)) $((left % 60)))
 log "train, max_time $max_time"
 "$PY" train.py fit --config configs/small_relu_gpu.yaml --data.num_workers $((WORKERS - 2)) \
     --trainer.max_time "$max_time" --trainer.enable_progress_bar false ${EXTRA:-} ${TRAIN_ARGS:-} \
+    "${init[@]}" \
     >"$OUT/train.txt" 2>&1 || { log "training failed"; tail -n 30 "$OUT/train.txt"; }
 log "export"
 "$PY" - "$RUN" "$OUT" <<'EOF' 2>&1 | tee -a "$OUT/log.txt"
