@@ -30,19 +30,22 @@
 # Session 59 (H200, BUDGET_S=570; the same command from session 57's small.pt with
 # SEED_TRAIN=36000001 SEED_TRANSFER=37000011 and --data.weights [0.4,0.6]; not shipped, it lost
 # real craters): rendering 223 s, training 4 min 29 s, 1,103 steps.
-# Ready for the next lent GPU (session 63; CPU smoke run only, 2-core Xeon: 240 steps of 4 in 4.5
-# min, the tree's outputs/s62/kd.pt carried): the stride-2 student, `small.pt` as its teacher
-# beside the labels (issue 8, BENCHMARKS.md "The teacher's weight in the labelled loss"):
-#   carry outputs/s62/kd.pt and .gpu/site; OUT=$OUT BUDGET_S=570 SITE=$PWD/.gpu/site BENCH=0 \
-#       SEED_TRAIN=38000001 SEED_TRANSFER=39000011 EXTRA="--model.preset small-relu-s2 \
-#       --model.init_from outputs/s62/kd.pt --model.teacher lunarnav_ml/weights/small.pt \
+# Ready for the next lent GPU (session 63; CPU smoke runs only): the stride-2 student of issue 8
+# (BENCHMARKS.md "The teacher's weight in the labelled loss"), its stem distilled from the
+# shipped small.pt and every weight on its detections (DISTILL_STEPS: `lunarnav distill-stem`
+# on the GPU, on the training renders), then trained with labels and small.pt as a second
+# target; nothing carried but .gpu/site (DISTILL_FROM=outputs/s62/kd.pt, carried, would start
+# from session 62's CPU student instead); size DISTILL_STEPS to about a third of the budget:
+#   OUT=$OUT BUDGET_S=570 SITE=$PWD/.gpu/site BENCH=0 SEED_TRAIN=38000001 \
+#       SEED_TRANSFER=39000011 DISTILL_STEPS=2000 EXTRA="--model.preset small-relu-s2 \
+#       --model.init_from null" TRAIN_ARGS="--model.teacher lunarnav_ml/weights/small.pt \
 #       --model.teacher_weight 0.01" bash benchmarks/device_train.sh
-# (the CPU smoke: PY=.venv/bin/python WORKERS=2 N_TRAIN=16 N_TRANSFER=16 MONO_N=2 BUDGET_S=400
-# and "--trainer.accelerator cpu --trainer.precision 32 --data.batch_size 4" added to EXTRA).
-# DISTILL_STEPS=N puts the teacher-only phase first (`lunarnav distill-stem --whole-steps N` on the
-# GPU, from DISTILL_FROM, on the training renders; untried on a GPU, CPU smoke run only: 3 steps
-# of 4, 14 s), and the training starts from its result: add DISTILL_STEPS=<what fits a third of
-# the budget> DISTILL_FROM=outputs/s62/kd.pt to the command above.
+# (init_from null: the smoke run's start, whose anchors are not the teacher's, hence the teacher
+# in TRAIN_ARGS; the real run starts from the distilled student.) The CPU smoke:
+# PY=.venv/bin/python WORKERS=2 N_TRAIN=16 N_TRANSFER=16 MONO_N=2 BUDGET_S=300
+# DISTILL_IMAGES=32 DISTILL_BATCH=4 DISTILL_FEATURE_STEPS=2 DISTILL_OUTPUT_STEPS=2
+# DISTILL_STEPS=2, "--trainer.accelerator cpu --trainer.precision 32 --data.batch_size 4" added
+# to EXTRA.
 # Use new seeds next time (renders up to 37,000,011 are taken; 38000001 / 39000011 are not).
 # Environment: BUDGET_S (whole script, default 540), WORKERS (rendering processes, default
 # nproc), N_TRAIN / N_TRANSFER / MONO_N (render counts; MONO_N empty = the whole shard),
@@ -50,7 +53,9 @@
 # 5000011 and 9100003; session 51 rendered new ones), BENCH (0 skips the model-only speed),
 # PY (default python3), EXTRA (more `train.py fit` arguments for both runs, e.g. for a CPU smoke
 # run), TRAIN_ARGS (more arguments for the real run only, e.g. other --data.weights),
-# DISTILL_STEPS (default 0: none), DISTILL_FROM (the small-relu-s2 student to start it from),
+# DISTILL_STEPS (default 0: none), DISTILL_FROM (the small-relu-s2 student to start it from;
+# unset: a new stem distilled from the shipped small.pt first, DISTILL_FEATURE_STEPS (default
+# 1500) and DISTILL_OUTPUT_STEPS (400) of `distill-stem`'s stem phases),
 # DISTILL_IMAGES (renders it holds in memory, default 4000), DISTILL_BATCH (default 64),
 # DISTILL_LR (default 1e-4).
 set -euo pipefail
@@ -128,9 +133,15 @@ log "rendered: $(du -sh "$DATA" | cut -f1)"
 init=()
 if [ "${DISTILL_STEPS:-0}" -gt 0 ]; then
     dev=$("$PY" -c 'import torch; print("cuda" if torch.cuda.is_available() else "cpu")')
-    log "distil: $DISTILL_STEPS steps on the teacher's detections from ${DISTILL_FROM:?}, $dev"
-    lunarnav distill-stem --student "$DISTILL_FROM" --images "$DATA/train" "$DATA/transfer" \
-        --max-images "${DISTILL_IMAGES:-4000}" --feature-steps 0 --output-steps 0 \
+    if [ -n "${DISTILL_FROM:-}" ]; then  # a student trained before: the third phase alone
+        phases=(--student "$DISTILL_FROM" --feature-steps 0 --output-steps 0)
+    else  # the stem from the shipped small.pt first (session 61's steps)
+        phases=(--feature-steps "${DISTILL_FEATURE_STEPS:-1500}"
+                --output-steps "${DISTILL_OUTPUT_STEPS:-400}")
+    fi
+    log "distil on $dev: ${phases[*]}, then $DISTILL_STEPS steps on the teacher's detections"
+    lunarnav distill-stem "${phases[@]}" --images "$DATA/train" "$DATA/transfer" \
+        --max-images "${DISTILL_IMAGES:-4000}" \
         --whole-steps "$DISTILL_STEPS" --batch "${DISTILL_BATCH:-64}" \
         --whole-lr "${DISTILL_LR:-1e-4}" --bf16 --device "$dev" --seed "$SEED_TRAIN" --quiet \
         --out "$OUT/distilled.pt" >"$OUT/distill.txt" 2>&1 || fail "distillation failed" \
