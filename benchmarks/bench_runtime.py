@@ -1,10 +1,14 @@
 """Onboard runtime figures: per-frame latency of each preset (onnxruntime fp32 / int8, eager
 PyTorch), achieved GFLOP/s, and the int8 accuracy cost on a labeled test set.
 
-Latency (untrained weights with live activations; the arithmetic does not depend on them):
+Latency of presets with untrained weights (live activations) and of trained checkpoints:
 
     .venv/bin/python benchmarks/bench_runtime.py latency --presets nano tiny small \\
-        --sizes 512 1024 --threads 1 2 --runs 7
+        --checkpoints lunarnav_ml/weights/small.pt --sizes 512 1024 --threads 1 2 --runs 7
+
+On the 2-core Xeon with AMX this read int8 slower than `lunarnav bench` on exported files
+(small-relu at 1024 px: 164-242 ms against 134-170 ms; not the weights, the cause not settled,
+BENCHMARKS.md issue 8, session 63): quote int8 speed-ups from `lunarnav bench`.
 
 Accuracy (a trained checkpoint; calibration images from a split other than the test set):
 
@@ -61,10 +65,14 @@ def export_pair(parts: Any, folder: Path, calib: list, size: int) -> tuple[Path,
     return fp32, int8
 
 
-def latency_rows(preset: str, sizes: list[int], threads: list[int], runs: int, warmup: int,
-                 calib_dir: Path | None, torch_max_size: int) -> list[dict[str, Any]]:
-    """One row per (size, threads, runtime) for one preset."""
-    parts = random_detector(preset, img_size=min(sizes))
+DEFAULT_PRESETS = ["nano", "tiny", "small"]
+
+
+def latency_rows(parts: Any, label: str, sizes: list[int], threads: list[int], runs: int,
+                 warmup: int, calib_dir: Path | None, torch_max_size: int
+                 ) -> list[dict[str, Any]]:
+    """One row per (size, threads, runtime) for one model (``DetectorParts``), named ``label``
+    in the rows' ``preset`` field."""
     calib = (load_calibration_images(calib_dir, 16) if calib_dir
              else [synthetic_frame(min(sizes), seed=s) for s in range(16)])
     rows = []
@@ -82,7 +90,7 @@ def latency_rows(preset: str, sizes: list[int], threads: list[int], runs: int, w
                         parts, s, n, runs=max(3, runs // 2), warmup=1)
                 for runtime, run in runners.items():
                     st = run()
-                    row = {"preset": preset, "size": size, "threads": n, "runtime": runtime,
+                    row = {"preset": label, "size": size, "threads": n, "runtime": runtime,
                            "median_ms": round(st.median_ms, 1), "p90_ms": round(st.p90_ms, 1),
                            "gflop": round(gflop, 2),
                            "gflops_per_s": round(gflop / (st.median_ms / 1e3), 1)}
@@ -118,9 +126,17 @@ def markdown(rows: list[dict[str, Any]]) -> str:
 
 
 def run_latency(args: argparse.Namespace) -> None:
+    from lunarnav_ml.training.api import load_detector
+
+    presets = args.presets if args.presets is not None or args.checkpoints else DEFAULT_PRESETS
+    models = [(lambda p=p: random_detector(p, img_size=min(args.sizes)), p)
+              for p in presets or []]
+    for path in args.checkpoints:
+        detector = load_detector(path)
+        models.append((lambda d=detector: load_parts(d), f"{path.stem} ({detector.preset})"))
     rows = []
-    for preset in args.presets:
-        rows += latency_rows(preset, args.sizes, args.threads, args.runs, args.warmup,
+    for build, label in models:
+        rows += latency_rows(build(), label, args.sizes, args.threads, args.runs, args.warmup,
                              args.calib, args.torch_max_size)
     print(markdown(rows))
     print("\n".join(ratios(rows)))
@@ -242,7 +258,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="mode", required=True)
     lat = sub.add_parser("latency", help="latency per preset, size, threads and runtime")
-    lat.add_argument("--presets", nargs="+", default=["nano", "tiny", "small"])
+    lat.add_argument("--presets", nargs="+", default=None,
+                     help=f"untrained presets (default: {' '.join(DEFAULT_PRESETS)} when no "
+                          "--checkpoints)")
+    lat.add_argument("--checkpoints", type=Path, nargs="+", default=[],
+                     help="trained checkpoints or slim weights")
     lat.add_argument("--sizes", type=int, nargs="+", default=[512, 1024])
     lat.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     lat.add_argument("--runs", type=int, default=7)
