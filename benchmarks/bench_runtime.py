@@ -6,9 +6,8 @@ Latency of presets with untrained weights (live activations) and of trained chec
     .venv/bin/python benchmarks/bench_runtime.py latency --presets nano tiny small \\
         --checkpoints lunarnav_ml/weights/small.pt --sizes 512 1024 --threads 1 2 --runs 7
 
-On the 2-core Xeon with AMX this read int8 slower than `lunarnav bench` on exported files
-(small-relu at 1024 px: 164-242 ms against 134-170 ms; not the weights, the cause not settled,
-BENCHMARKS.md issue 8, session 63): quote int8 speed-ups from `lunarnav bench`.
+Each onnxruntime cell is timed in a fresh process: timed in this one after PyTorch ran, int8
+read much slower on the 2-core Xeon with AMX (BENCHMARKS.md, issue 8, session 63).
 
 Accuracy (a trained checkpoint; calibration images from a split other than the test set):
 
@@ -40,12 +39,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 from lunarnav_ml.export.bench import (
+    LatencyStats,
     bench_onnx,
     bench_torch,
     conv_flops,
@@ -68,6 +70,18 @@ def export_pair(parts: Any, folder: Path, calib: list, size: int) -> tuple[Path,
 DEFAULT_PRESETS = ["nano", "tiny", "small"]
 
 
+def onnx_apart(path: Path, size: int, threads: int, runs: int, warmup: int) -> LatencyStats:
+    """``bench_onnx`` in a fresh Python process: this one has run PyTorch (export, eager
+    timing), and on a 2-core host its int8 onnxruntime timings read slower than the same files
+    timed alone (BENCHMARKS.md, issue 8, session 63)."""
+    code = ("import json, sys; from lunarnav_ml.export.bench import bench_onnx; "
+            "st = bench_onnx(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), "
+            "runs=int(sys.argv[4]), warmup=int(sys.argv[5])); print(json.dumps(st.__dict__))")
+    out = subprocess.run([sys.executable, "-c", code, str(path), str(size), str(threads),
+                          str(runs), str(warmup)], capture_output=True, text=True, check=True)
+    return LatencyStats(**json.loads(out.stdout.strip().splitlines()[-1]))
+
+
 def latency_rows(parts: Any, label: str, sizes: list[int], threads: list[int], runs: int,
                  warmup: int, calib_dir: Path | None, torch_max_size: int
                  ) -> list[dict[str, Any]]:
@@ -81,10 +95,8 @@ def latency_rows(parts: Any, label: str, sizes: list[int], threads: list[int], r
         for size in sizes:
             gflop = conv_flops(fp32, size) / 1e9
             for n in threads:
-                runners = {"ort-fp32": lambda s=size, n=n: bench_onnx(fp32, s, n, runs=runs,
-                                                                      warmup=warmup),
-                           "ort-int8": lambda s=size, n=n: bench_onnx(int8, s, n, runs=runs,
-                                                                      warmup=warmup)}
+                runners = {"ort-fp32": lambda s=size, n=n: onnx_apart(fp32, s, n, runs, warmup),
+                           "ort-int8": lambda s=size, n=n: onnx_apart(int8, s, n, runs, warmup)}
                 if size <= torch_max_size:
                     runners["torch-fp32"] = lambda s=size, n=n: bench_torch(
                         parts, s, n, runs=max(3, runs // 2), warmup=1)
