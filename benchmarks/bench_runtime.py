@@ -7,7 +7,9 @@ Latency of presets with untrained weights (live activations) and of trained chec
         --checkpoints lunarnav_ml/weights/small.pt --sizes 512 1024 --threads 1 2 --runs 7
 
 Each onnxruntime cell is timed in a fresh process: timed in this one after PyTorch ran, int8
-read much slower on the 2-core Xeon with AMX (BENCHMARKS.md, issue 8, session 63).
+read much slower on the 2-core Xeon with AMX. The calls are end to end, NMS included, and
+random weights put many boxes over the threshold, so their int8 speed-ups read low: quote
+trained checkpoints (BENCHMARKS.md, issue 8, session 63).
 
 Accuracy (a trained checkpoint; calibration images from a split other than the test set):
 
