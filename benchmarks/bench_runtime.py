@@ -9,7 +9,8 @@ Latency of presets with untrained weights (live activations) and of trained chec
 Each onnxruntime cell is timed in a fresh process: timed in this one after PyTorch ran, int8
 read much slower on the 2-core Xeon with AMX. The calls are end to end, NMS included, and
 random weights put many boxes over the threshold, so their int8 speed-ups read low: quote
-trained checkpoints (BENCHMARKS.md, issue 8, session 63).
+trained checkpoints, or time the network alone with ``--network-only`` (BENCHMARKS.md, issue 8,
+session 63).
 
 Accuracy (a trained checkpoint; calibration images from a split other than the test set):
 
@@ -72,23 +73,27 @@ def export_pair(parts: Any, folder: Path, calib: list, size: int) -> tuple[Path,
 DEFAULT_PRESETS = ["nano", "tiny", "small"]
 
 
-def onnx_apart(path: Path, size: int, threads: int, runs: int, warmup: int) -> LatencyStats:
+def onnx_apart(path: Path, size: int, threads: int, runs: int, warmup: int,
+               network_only: bool = False) -> LatencyStats:
     """``bench_onnx`` in a fresh Python process: this one has run PyTorch (export, eager
     timing), and on a 2-core host its int8 onnxruntime timings read slower than the same files
     timed alone (BENCHMARKS.md, issue 8, session 63)."""
     code = ("import json, sys; from lunarnav_ml.export.bench import bench_onnx; "
             "st = bench_onnx(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), "
-            "runs=int(sys.argv[4]), warmup=int(sys.argv[5])); print(json.dumps(st.__dict__))")
+            "runs=int(sys.argv[4]), warmup=int(sys.argv[5]), network_only=sys.argv[6] == '1'); "
+            "print(json.dumps(st.__dict__))")
     out = subprocess.run([sys.executable, "-c", code, str(path), str(size), str(threads),
-                          str(runs), str(warmup)], capture_output=True, text=True, check=True)
+                          str(runs), str(warmup), "1" if network_only else "0"],
+                         capture_output=True, text=True, check=True)
     return LatencyStats(**json.loads(out.stdout.strip().splitlines()[-1]))
 
 
 def latency_rows(parts: Any, label: str, sizes: list[int], threads: list[int], runs: int,
-                 warmup: int, calib_dir: Path | None, torch_max_size: int
-                 ) -> list[dict[str, Any]]:
+                 warmup: int, calib_dir: Path | None, torch_max_size: int,
+                 network_only: bool = False) -> list[dict[str, Any]]:
     """One row per (size, threads, runtime) for one model (``DetectorParts``), named ``label``
-    in the rows' ``preset`` field."""
+    in the rows' ``preset`` field; ``network_only``: the network on a prepared input, without
+    letterbox and NMS."""
     calib = (load_calibration_images(calib_dir, 16) if calib_dir
              else [synthetic_frame(min(sizes), seed=s) for s in range(16)])
     rows = []
@@ -97,11 +102,14 @@ def latency_rows(parts: Any, label: str, sizes: list[int], threads: list[int], r
         for size in sizes:
             gflop = conv_flops(fp32, size) / 1e9
             for n in threads:
-                runners = {"ort-fp32": lambda s=size, n=n: onnx_apart(fp32, s, n, runs, warmup),
-                           "ort-int8": lambda s=size, n=n: onnx_apart(int8, s, n, runs, warmup)}
+                runners = {"ort-fp32": lambda s=size, n=n: onnx_apart(fp32, s, n, runs, warmup,
+                                                                      network_only),
+                           "ort-int8": lambda s=size, n=n: onnx_apart(int8, s, n, runs, warmup,
+                                                                      network_only)}
                 if size <= torch_max_size:
                     runners["torch-fp32"] = lambda s=size, n=n: bench_torch(
-                        parts, s, n, runs=max(3, runs // 2), warmup=1)
+                        parts, s, n, runs=max(3, runs // 2), warmup=1,
+                        network_only=network_only)
                 for runtime, run in runners.items():
                     st = run()
                     row = {"preset": label, "size": size, "threads": n, "runtime": runtime,
@@ -151,7 +159,7 @@ def run_latency(args: argparse.Namespace) -> None:
     rows = []
     for build, label in models:
         rows += latency_rows(build(), label, args.sizes, args.threads, args.runs, args.warmup,
-                             args.calib, args.torch_max_size)
+                             args.calib, args.torch_max_size, args.network_only)
     print(markdown(rows))
     print("\n".join(ratios(rows)))
     if args.json:
@@ -285,6 +293,8 @@ def main() -> None:
                      help="calibration images (default: synthetic noise frames)")
     lat.add_argument("--torch-max-size", type=int, default=4096,
                      help="skip eager PyTorch above this input side")
+    lat.add_argument("--network-only", action="store_true",
+                     help="time the network alone (no letterbox, no NMS: fair to random weights)")
     lat.add_argument("--json", type=Path, default=None, help="also write the rows here")
     lat.set_defaults(func=run_latency)
     acc = sub.add_parser("accuracy", help="crater AP50: eager vs onnxruntime fp32 vs int8")
