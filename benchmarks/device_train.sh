@@ -132,18 +132,17 @@ log "rendered: $(du -sh "$DATA" | cut -f1)"
 
 init=()
 if [ "${DISTILL_STEPS:-0}" -gt 0 ]; then
-    dev=$("$PY" -c 'import torch; print("cuda" if torch.cuda.is_available() else "cpu")')
     if [ -n "${DISTILL_FROM:-}" ]; then  # a student trained before: the third phase alone
         phases=(--student "$DISTILL_FROM" --feature-steps 0 --output-steps 0)
     else  # the stem from the shipped small.pt first (session 61's steps)
         phases=(--feature-steps "${DISTILL_FEATURE_STEPS:-1500}"
                 --output-steps "${DISTILL_OUTPUT_STEPS:-400}")
     fi
-    log "distil on $dev: ${phases[*]}, then $DISTILL_STEPS steps on the teacher's detections"
+    log "distil: ${phases[*]}, then $DISTILL_STEPS steps on the teacher's detections"
     lunarnav distill-stem "${phases[@]}" --images "$DATA/train" "$DATA/transfer" \
         --max-images "${DISTILL_IMAGES:-4000}" \
         --whole-steps "$DISTILL_STEPS" --batch "${DISTILL_BATCH:-64}" \
-        --whole-lr "${DISTILL_LR:-1e-4}" --bf16 --device "$dev" --seed "$SEED_TRAIN" --quiet \
+        --whole-lr "${DISTILL_LR:-1e-4}" --bf16 --seed "$SEED_TRAIN" --quiet \
         --out "$OUT/distilled.pt" >"$OUT/distill.txt" 2>&1 || fail "distillation failed" \
         "$OUT/distill.txt"
     tail -n 1 "$OUT/distill.txt" | tee -a "$OUT/log.txt"

@@ -89,8 +89,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--whole-lr", type=float, default=1e-4, help="peak rate of the third phase")
     p.add_argument("--bf16", action="store_true",
                    help="bfloat16 autocast (faster on CPUs with AVX512-BF16 or AMX)")
-    p.add_argument("--device", default="cpu",
-                   help="where the models run: cpu (default), cuda or cuda:N")
+    p.add_argument("--device", default="auto",
+                   help="where the models run: auto (default: CUDA where there is one), cpu, "
+                        "cuda or cuda:N")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     p.add_argument("--half", action="store_true", help="store the weights in float16")

@@ -84,7 +84,7 @@ def distill_stem(teacher: Detector, images: np.ndarray, preset: str = "small-rel
                  feature_steps: int = 1000, output_steps: int = 300, batch: int = 16,
                  lr: float = 2e-3, held_out: int = 32, seed: int = 0,
                  student: Detector | None = None, whole_steps: int = 0,
-                 whole_lr: float = 1e-4, bf16: bool = False, device: str = "cpu",
+                 whole_lr: float = 1e-4, bf16: bool = False, device: str = "auto",
                  progress: bool = True) -> tuple[Detector, DistillReport]:
     """Train a student's stem to reproduce the teacher (see the module docstring).
 
@@ -101,8 +101,9 @@ def distill_stem(teacher: Detector, images: np.ndarray, preset: str = "small-rel
         whole_steps, whole_lr: steps and AdamW peak rate of the third phase (every weight).
         bf16: run the forward passes under bfloat16 autocast (CPUs with AVX512-BF16 or AMX
             train about 1.7x faster; the losses stay in float32).
-        device: where the two models run (``"cpu"``, ``"cuda"``, ``"cuda:1"``); the images stay
-            in host memory and go over a batch at a time. The student comes back on the CPU.
+        device: where the two models run (``"auto"``: CUDA where there is one, else the CPU;
+            ``"cpu"``, ``"cuda"``, ``"cuda:1"``); the images stay in host memory and go over a
+            batch at a time. The student comes back on the CPU.
 
     Returns:
         The student as a :class:`Detector` (eval mode, the teacher's input size and classes)
@@ -133,8 +134,7 @@ def distill_stem(teacher: Detector, images: np.ndarray, preset: str = "small-rel
     for name, p in student.named_parameters():
         p.requires_grad_(name.startswith("backbone.stem."))
     autocast = torch.autocast(dev.type, dtype=torch.bfloat16, enabled=bf16)
-    train, test = torch.from_numpy(images[:-held_out]), torch.from_numpy(images[-held_out:])
-    test = test.to(dev)
+    train, test = torch.from_numpy(images[:-held_out]), torch.from_numpy(images[-held_out:]).to(dev)
 
     def sample() -> torch.Tensor:
         x = train[rng.integers(0, len(train), batch)]
@@ -199,13 +199,16 @@ def distill_stem(teacher: Detector, images: np.ndarray, preset: str = "small-rel
 
 
 def torch_device(name: str) -> torch.device:
-    """``name`` as a torch device, checked: ``cpu``, or ``cuda[:N]`` where CUDA is."""
+    """``name`` as a torch device, checked: ``cpu``, ``cuda[:N]`` where CUDA is, or ``auto``
+    (CUDA where there is one, else the CPU)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
         dev = torch.device(name)
     except RuntimeError:
         dev = None
     if dev is None or dev.type not in ("cpu", "cuda"):
-        raise ConfigError(f"device {name!r}: 'cpu' or 'cuda[:N]' expected")
+        raise ConfigError(f"device {name!r}: 'auto', 'cpu' or 'cuda[:N]' expected")
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"device {name!r}: no CUDA device here (use 'cpu')")
     return dev

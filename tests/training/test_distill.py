@@ -13,7 +13,7 @@ from lunarnav_ml.losses import detection_kd_loss
 from lunarnav_ml.runtime.preprocess import prepare_batch
 from lunarnav_ml.training import cli
 from lunarnav_ml.training.api import Detector, load_detector
-from lunarnav_ml.training.distill import distill_stem, student_from
+from lunarnav_ml.training.distill import distill_stem, student_from, torch_device
 
 
 @pytest.fixture(scope="module")
@@ -118,6 +118,7 @@ def test_an_explicit_cpu_device_changes_nothing(teacher, images):
     a, b = run(), run(device="cpu:0")
     assert all(torch.equal(v, w) for v, w in zip(a.values(), b.values()))
     assert all(v.device.type == "cpu" for v in b.values())
+    assert torch_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
 
 
 def test_cli_writes_a_loadable_student(teacher, tmp_path):
