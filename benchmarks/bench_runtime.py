@@ -78,13 +78,15 @@ def onnx_apart(path: Path, size: int, threads: int, runs: int, warmup: int,
     """``bench_onnx`` in a fresh Python process: this one has run PyTorch (export, eager
     timing), and on a 2-core host its int8 onnxruntime timings read slower than the same files
     timed alone (BENCHMARKS.md, issue 8, session 63)."""
-    code = ("import json, sys; from lunarnav_ml.export.bench import bench_onnx; "
+    code = ("import dataclasses, json, sys; from lunarnav_ml.export.bench import bench_onnx; "
             "st = bench_onnx(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), "
             "runs=int(sys.argv[4]), warmup=int(sys.argv[5]), network_only=sys.argv[6] == '1'); "
-            "print(json.dumps(st.__dict__))")
+            "print(json.dumps(dataclasses.asdict(st)))")
     out = subprocess.run([sys.executable, "-c", code, str(path), str(size), str(threads),
                           str(runs), str(warmup), "1" if network_only else "0"],
-                         capture_output=True, text=True, check=True)
+                         check=False, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise RuntimeError(f"timing {path} at {size} px failed: {out.stderr.strip()[-500:]}")
     return LatencyStats(**json.loads(out.stdout.strip().splitlines()[-1]))
 
 
@@ -150,9 +152,8 @@ def markdown(rows: list[dict[str, Any]]) -> str:
 def run_latency(args: argparse.Namespace) -> None:
     from lunarnav_ml.training.api import load_detector
 
-    presets = args.presets if args.presets is not None or args.checkpoints else DEFAULT_PRESETS
-    models = [(lambda p=p: random_detector(p, img_size=min(args.sizes)), p)
-              for p in presets or []]
+    presets = args.presets or ([] if args.checkpoints else DEFAULT_PRESETS)
+    models = [(lambda p=p: random_detector(p, img_size=min(args.sizes)), p) for p in presets]
     for path in args.checkpoints:
         detector = load_detector(path)
         models.append((lambda d=detector: load_parts(d), f"{path.stem} ({detector.preset})"))
