@@ -295,7 +295,8 @@ def main() -> None:
     lat.add_argument("--torch-max-size", type=int, default=4096,
                      help="skip eager PyTorch above this input side")
     lat.add_argument("--network-only", action="store_true",
-                     help="time the network alone (no letterbox, no NMS: fair to random weights)")
+                     help="time the network alone (no letterbox, no NMS); random weights still read "
+                          "int8 lower than trained files (BENCHMARKS.md, session 64)")
     lat.add_argument("--json", type=Path, default=None, help="also write the rows here")
     lat.set_defaults(func=run_latency)
     acc = sub.add_parser("accuracy", help="crater AP50: eager vs onnxruntime fp32 vs int8")
