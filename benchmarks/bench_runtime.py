@@ -8,9 +8,10 @@ Latency of presets with untrained weights (live activations) and of trained chec
 
 Each onnxruntime cell is timed in a fresh process: timed in this one after PyTorch ran, int8
 read much slower on the 2-core Xeon with AMX. The calls are end to end, NMS included, and
-random weights put many boxes over the threshold, so their int8 speed-ups read low: quote
-trained checkpoints, or time the network alone with ``--network-only`` (BENCHMARKS.md, issue 8,
-session 63).
+random weights put many boxes over the threshold, so their int8 speed-ups read low; timed on
+the network alone (``--network-only``) they still read lower and wider than trained files of
+the same architecture: quote trained checkpoints (BENCHMARKS.md, issue 8, sessions 63 and
+64).
 
 Accuracy (a trained checkpoint; calibration images from a split other than the test set):
 
@@ -152,14 +153,18 @@ def markdown(rows: list[dict[str, Any]]) -> str:
 def run_latency(args: argparse.Namespace) -> None:
     from lunarnav_ml.training.api import load_detector
 
-    presets = args.presets or ([] if args.checkpoints else DEFAULT_PRESETS)
-    models = [(lambda p=p: random_detector(p, img_size=min(args.sizes)), p) for p in presets]
-    for path in args.checkpoints:
+    def checkpoint(path: Path) -> tuple[Any, str]:
         detector = load_detector(path)
-        models.append((lambda d=detector: load_parts(d), f"{path.stem} ({detector.preset})"))
+        return load_parts(detector), f"{path.stem} ({detector.preset})"
+
+    presets = args.presets or ([] if args.checkpoints else DEFAULT_PRESETS)
+    # each model built when its turn comes, so one at a time is held in memory
+    models = [lambda p=p: (random_detector(p, img_size=min(args.sizes)), p) for p in presets]
+    models += [lambda path=path: checkpoint(path) for path in args.checkpoints]
     rows = []
-    for build, label in models:
-        rows += latency_rows(build(), label, args.sizes, args.threads, args.runs, args.warmup,
+    for build in models:
+        parts, label = build()
+        rows += latency_rows(parts, label, args.sizes, args.threads, args.runs, args.warmup,
                              args.calib, args.torch_max_size, args.network_only)
     print(markdown(rows))
     print("\n".join(ratios(rows)))
@@ -295,8 +300,8 @@ def main() -> None:
     lat.add_argument("--torch-max-size", type=int, default=4096,
                      help="skip eager PyTorch above this input side")
     lat.add_argument("--network-only", action="store_true",
-                     help="time the network alone (no letterbox, no NMS); random weights still read "
-                          "int8 lower than trained files (BENCHMARKS.md, session 64)")
+                     help="time the network alone (no letterbox, no NMS); random weights "
+                          "still read int8 lower than trained files (BENCHMARKS.md, session 64)")
     lat.add_argument("--json", type=Path, default=None, help="also write the rows here")
     lat.set_defaults(func=run_latency)
     acc = sub.add_parser("accuracy", help="crater AP50: eager vs onnxruntime fp32 vs int8")
