@@ -22,6 +22,7 @@ from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.eval.predict import read_coco_results
 from lunarnav_ml.eval.tta import TTAConfig, TTAPredictor, add_tta_arguments, tta_config
 
+SHIPPED = "shipped"  # --refiner without a file
 TASKS = ("detection", "geometry", "baselines-lidar", "baselines-stereo", "transfer")
 
 
@@ -93,11 +94,18 @@ def run_geometry(args: argparse.Namespace) -> int:
     from lunarnav_ml.geometry.lifter import load_edge_offsets
     from lunarnav_ml.geometry.report import geometry_report
 
+    refiner = None
+    if args.refiner is not None:
+        from lunarnav_ml.geometry.refine import DisparityRefiner
+
+        refiner = DisparityRefiner(None if args.refiner == SHIPPED else args.refiner,
+                                   threads=args.threads)
+    # the refiner's own edge offsets (if any) unless a calibration file is given
     lifter = load_edge_offsets(args.edge_offsets) if args.edge_offsets else None
     summary = geometry_report(Path(args.test_gt), args.out, detections=args.test_results,
                               ellipse_source=args.ellipse_source, disparity=args.disparity,
                               box_jitter=args.box_jitter, seed=args.seed, lifter=lifter,
-                              progress=not args.no_progress)
+                              refiner=refiner, progress=not args.no_progress)
     print(json.dumps(summary.get("summary", summary), indent=1, default=str)[:2000])
     return 0
 
@@ -213,6 +221,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--disparity", choices=("sgbm", "rendered"), default="sgbm",
                    help="(geometry) SGBM on the pair, or the dataset's rendered disparity "
                         "(isolates the lifter)")
+    p.add_argument("--refiner", nargs="?", const=SHIPPED, default=None, metavar="ONNX",
+                   help="(geometry) correct SGBM's disparity around each crater with a refiner "
+                        "from `lunarnav train-refiner` (no file: the shipped one)")
     p.add_argument("--prior-sigma", type=float, default=1.0,
                    help="(baselines-lidar) map-prior position error per axis, m: each map "
                         "crater's prior center is offset by N(0, sigma); placements farther "

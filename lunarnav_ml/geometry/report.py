@@ -33,6 +33,7 @@ from lunarnav_ml.geometry._checks import crater_labels_3d
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
 from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater, rows_needed
+from lunarnav_ml.geometry.refine import DisparityRefiner
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.utils.atomic import finite_or_none, write_figure, write_json, write_text
 from lunarnav_ml.utils.images import read_disparity
@@ -62,6 +63,7 @@ def geometry_report(
     stereo: SGBMStereo | None = None,
     lifter: LifterConfig | None = None,
     fitter: EllipseFitter | None = None,
+    refiner: DisparityRefiner | None = None,
     plots: bool = True,
     progress: bool = False,
 ) -> dict[str, Any]:
@@ -87,6 +89,10 @@ def geometry_report(
         seed: the jitter's seed (with each label's id: the same seed, the same boxes).
         stereo, lifter, fitter: settings (defaults: SGBM sized to the image, LifterConfig(),
             EllipseFitter()).
+        refiner: corrects SGBM's disparity around each crater box before the lifts
+            (:class:`~lunarnav_ml.geometry.refine.DisparityRefiner`; not with ``disparity``
+            "rendered"); without ``lifter`` the lifter then takes the refiner's edge offsets
+            (:meth:`~lunarnav_ml.geometry.refine.DisparityRefiner.lifter_config`).
         plots: write the PNG plots.
         progress: tqdm bar over the images on stderr.
 
@@ -116,8 +122,12 @@ def geometry_report(
     for ann in crater_labels_3d(ann_path, coco):
         if _evaluated(ann, min_diameter_m):
             by_image[ann["image_id"]].append(ann)
-    settings = _Settings(stereo, lifter or LifterConfig(), fitter or EllipseFitter(), ellipse_source,
-                         disparity, box_jitter, seed)
+    if refiner is not None and disparity != "sgbm":
+        raise InputError(f"refiner: refines SGBM's disparity, not the {disparity!r} one")
+    if lifter is None:  # a refined disparity has its own edge offsets
+        lifter = refiner.lifter_config() if refiner is not None else LifterConfig()
+    settings = _Settings(stereo, lifter, fitter or EllipseFitter(), ellipse_source,
+                         disparity, box_jitter, seed, refiner)
     rows: list[dict[str, Any]] = []
     for im in tqdm(images, desc="geometry", unit="img", disable=not progress):
         if by_image.get(im["id"]):
@@ -128,16 +138,19 @@ def geometry_report(
                            "disparity": disparity,
                            "detections": None if detections is None else "coco_results",
                            "score_threshold": score_threshold, "min_diameter_m": min_diameter_m,
-                           "box_jitter": box_jitter, "seed": seed, "n_images": len(images)}
+                           "box_jitter": box_jitter, "seed": seed, "n_images": len(images),
+                           "refiner": None if refiner is None else str(refiner.path)}
     _write_outputs(Path(out_dir), metrics, rows, plots)
     return metrics
 
 
 class _Settings:
     def __init__(self, stereo: SGBMStereo | None, lifter: LifterConfig, fitter: EllipseFitter,
-                 source: str, disparity: str, box_jitter: float = 0.0, seed: int = 0) -> None:
+                 source: str, disparity: str, box_jitter: float = 0.0, seed: int = 0,
+                 refiner: DisparityRefiner | None = None) -> None:
         self.stereo, self.lifter, self.fitter, self.source = stereo, lifter, fitter, source
         self.disparity, self.box_jitter, self.seed = disparity, box_jitter, seed
+        self.refiner = refiner
 
 
 def _annotations_path(dataset_dir: str | Path) -> Path:
@@ -199,7 +212,11 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
             coco = np.array(used) + np.array([0.5, 0.5, 0.0, 0.0])
             rows = rows_needed(coco, left.shape[0], cfg.lifter)
             disp = (cfg.stereo or SGBMStereo.for_width(left.shape[1]))(left, right, rows).disparity
-        timing = {"stereo_s": time.perf_counter() - t0}
+            t_sgbm = time.perf_counter()
+            if cfg.refiner is not None:
+                disp = cfg.refiner.refine(left, right, disp, coco)
+                timing["refine_s"] = time.perf_counter() - t_sgbm
+        timing["stereo_s"] = time.perf_counter() - t0
     rows = []
     for ann, box in zip(anns, boxes):
         row = _eval_crater(left, right, disp, rig, ann, box, cfg)

@@ -21,6 +21,7 @@ from lunarnav_ml.geometry._checks import as_image
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig
 from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater, rows_needed
+from lunarnav_ml.geometry.refine import DisparityRefiner
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.runtime.preprocess import check_image
 
@@ -84,19 +85,23 @@ class StereoCraterLocalizer:
         stereo: disparity stage (SGBM settings); default sized to each frame's width
             (:meth:`SGBMStereo.for_width`, as the geometry evaluation runs it).
         fitter: rim ellipse stage.
-        lifter: range lifter thresholds (default :class:`LifterConfig`).
+        lifter: range lifter thresholds (default :class:`LifterConfig`, with the refiner's
+            edge offsets when there is one).
         lift_from: the ellipse each crater is lifted from: "box" (the box's inscribed
             ellipse) or "fit" (the fitted rim ellipse, or the fitter's box fallback). The
             fitted ellipse is reported either way. "box" by default: on development renders
             of the paper-stereo grid it gave the smaller 3D errors with labelled boxes and
             with their edges moved by 1-2 % of the side, the same at 4 % and with a
             detector's boxes (BENCHMARKS.md, issue 5, "Lifting from the box").
+        refiner: corrects the disparity around each crater box before the lifts
+            (:class:`~lunarnav_ml.geometry.refine.DisparityRefiner`, onnxruntime); None: SGBM's
+            disparity as it is.
     """
 
     def __init__(self, detector: BoxDetector, rig: StereoRig, *, conf_thres: float = 0.25,
                  iou_thres: float = 0.6, stereo: SGBMStereo | None = None,
                  fitter: EllipseFitter | None = None, lifter: LifterConfig | None = None,
-                 lift_from: str = "box") -> None:
+                 lift_from: str = "box", refiner: DisparityRefiner | None = None) -> None:
         if lift_from not in LIFT_SOURCES:
             raise ConfigError(f"lift_from: expected one of {LIFT_SOURCES}, got {lift_from!r}")
         names = list(detector.class_names)
@@ -107,8 +112,11 @@ class StereoCraterLocalizer:
         self.conf_thres, self.iou_thres = conf_thres, iou_thres
         self.stereo = stereo
         self.fitter = fitter or EllipseFitter()
-        self.lifter = lifter or LifterConfig()
+        if lifter is None:  # a refined disparity has its own edge offsets
+            lifter = refiner.lifter_config() if refiner is not None else LifterConfig()
+        self.lifter = lifter
         self.lift_from = lift_from
+        self.refiner = refiner
         self.timing_ms: dict[str, float] = {}  # the last frame's, see __call__
 
     def detect_boxes(self, left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -153,8 +161,9 @@ class StereoCraterLocalizer:
         Returns:
             One :class:`Crater3D` per crater box above ``conf_thres``, by decreasing score;
             check ``ok`` / ``reason`` before using ``center_m``. ``timing_ms`` then holds the
-            frame's wall time per stage: "detect", "stereo" (gray conversion and disparity;
-            0 without crater boxes) and "craters" (every box's ellipse and lift), ms.
+            frame's wall time per stage: "detect", "stereo" (gray conversion and disparity,
+            with the refiner's correction; 0 without crater boxes) and "craters" (every box's
+            ellipse and lift), ms.
         """
         check_image(left, 0)
         check_image(right, 1)
@@ -171,6 +180,8 @@ class StereoCraterLocalizer:
         xywh = np.column_stack([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]])
         # only the rows the boxes' lifts read, as the geometry evaluation matches them
         disparity = self.disparity(*pair, rows=rows_needed(xywh, left.shape[0], self.lifter))
+        if self.refiner is not None:
+            disparity = self.refiner.refine(*pair, disparity, xywh)
         t2 = time.perf_counter()
         craters = [self.localize_box(pair[0], disparity, b, float(s), pair)
                    for b, s in zip(boxes, scores)]

@@ -1,5 +1,5 @@
 """``lunarnav train`` (the LightningCLI of train.py), ``lunarnav detect``,
-``lunarnav average`` and ``lunarnav distill-stem``."""
+``lunarnav average``, ``lunarnav distill-stem`` and ``lunarnav train-refiner``."""
 
 from __future__ import annotations
 
@@ -97,6 +97,48 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--half", action="store_true", help="store the weights in float16")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_distill_stem)
+
+    p = subparsers.add_parser(
+        "train-refiner", help="train the SGBM disparity refiner of the crater lifter",
+        description="Cuts crops around crater rims from rendered stereo sets (their exact "
+                    "disparity is the target), trains the small net that corrects SGBM's "
+                    "disparity there and exports it as ONNX, for 'lunarnav eval --task geometry "
+                    "--refiner' and 'lunarnav localize --refiner' (docs/geometry.md).")
+    p.add_argument("datasets", type=Path, nargs="+",
+                   help="rendered stereo sets (lunarnav synth --protocol paper-stereo): folders "
+                        "with annotations.json (or one annotations*.json shard). Use "
+                        "development renders, not a set you will test on")
+    p.add_argument("--out", type=Path, required=True, help="ONNX file to write")
+    p.add_argument("--steps", type=int, default=None, help="optimizer steps (default 4800)")
+    p.add_argument("--batch", type=int, default=None, help="crops per step (default 16)")
+    p.add_argument("--lr", type=float, default=None, help="peak Adam rate (default 1e-3)")
+    p.add_argument("--channels", type=int, default=None, help="width of the net (default 32)")
+    p.add_argument("--seed", type=int, default=None, 
+                   help="seed of the crops, the split and the weights (default 65)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_train_refiner)
+
+
+def run_train_refiner(args: argparse.Namespace) -> int:
+    """Crops, training and ONNX export of the disparity refiner (``--out`` written atomically)."""
+    import torch
+
+    from lunarnav_ml.training.refiner import RefinerConfig, run
+    from lunarnav_ml.utils.atomic import check_destination
+
+    given = {k: getattr(args, k) for k in ("channels", "steps", "batch", "lr", "seed")}
+    config = RefinerConfig(**{k: v for k, v in given.items() if v is not None})
+    check_destination(args.out)
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ConfigError(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+    report = run(args.datasets, args.out, config, progress=not args.quiet)
+    print(f"lunarnav train-refiner: {report.n_train} training crops, {report.steps} steps in "
+          f"{report.seconds:.0f} s; held-out L1 {report.refined_l1_px:.4f} px (SGBM "
+          f"{report.sgbm_l1_px:.4f} px, {report.n_val} crops) -> {args.out}")
+    return 0
 
 
 def run_train(args: argparse.Namespace) -> int:
