@@ -120,20 +120,11 @@ class DisparityRefiner:
     """
 
     def __init__(self, path: str | os.PathLike | None = None, threads: int = 1) -> None:
-        import onnxruntime as ort
-
-        from lunarnav_ml.runtime.session import ORT_LOAD_ERRORS, session_options
+        from lunarnav_ml.runtime.session import load_session
 
         self.path = Path(path) if path is not None else DEFAULT_REFINER
-        if not self.path.is_file():
-            raise InputError(f"{self.path}: disparity refiner not found")
-        try:
-            self.session = ort.InferenceSession(str(self.path), session_options(threads),
-                                                providers=["CPUExecutionProvider"])
-        except ORT_LOAD_ERRORS as err:
-            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-            raise InputError(f"{self.path}: not a loadable ONNX model (truncated, corrupt or not "
-                             f"ONNX): {first}") from None
+        self.session = load_session(self.path, threads, "disparity refiner",
+                                    "`lunarnav train-refiner`")
         props = self.session.get_modelmeta().custom_metadata_map
         if props.get("lunarnav.kind") != KIND:
             raise InputError(f"{self.path}: not a disparity refiner (metadata lunarnav.kind is "

@@ -30,6 +30,25 @@ def session_options(threads: int) -> ort.SessionOptions:
     return opts
 
 
+def load_session(path: Path, threads: int, what: str, writer: str) -> ort.InferenceSession:
+    """``path`` on the CPU execution provider with :func:`session_options`.
+
+    Raises:
+        InputError: "``path``: ``what`` not found", or not a loadable model (naming ``writer``,
+            the command that writes such files).
+        ConfigError: ``threads`` is not a positive integer.
+    """
+    opts = session_options(threads)
+    if not path.is_file():
+        raise InputError(f"{path}: {what} not found")
+    try:
+        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except ORT_LOAD_ERRORS as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise InputError(f"{path}: not a loadable ONNX model (truncated, corrupt or not ONNX; "
+                         f"expected a file written by {writer}): {first}") from None
+
+
 def open_session(path: str | os.PathLike, threads: int = 1
                  ) -> tuple[ort.InferenceSession, md.ModelMetadata]:
     """Load ``path`` on the CPU execution provider and read its lunarnav metadata.
@@ -41,15 +60,7 @@ def open_session(path: str | os.PathLike, threads: int = 1
         ConfigError: ``threads`` is not a positive integer.
     """
     path = Path(path)
-    opts = session_options(threads)
-    if not path.is_file():
-        raise InputError(f"{path}: ONNX file not found")
-    try:
-        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-    except ORT_LOAD_ERRORS as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise InputError(f"{path}: not a loadable ONNX model (truncated, corrupt or not ONNX; "
-                         f"expected a file written by `lunarnav export`): {first}") from None
+    session = load_session(path, threads, "ONNX file", "`lunarnav export`")
     meta = md.ModelMetadata.from_props(session.get_modelmeta().custom_metadata_map, str(path))
     check_io(session, meta, path)
     return session, meta
