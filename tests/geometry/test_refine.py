@@ -210,3 +210,27 @@ def test_cli_train_refiner_bad_input(tmp_path, rendered_set, capsys):
 def test_report_refiner_needs_sgbm(rendered_set, tmp_path, shipped):
     with pytest.raises(InputError, match="refiner: refines SGBM's disparity"):
         geometry_report(rendered_set, tmp_path, disparity="rendered", refiner=shipped)
+
+
+def test_refiner_study_script(rendered_set, tmp_path, capsys):
+    from tests.bench_scripts import load_script
+
+    study = load_script("refiner_study")
+    coco = json.loads((rendered_set / "annotations.json").read_text())
+    coco["annotations"][0]["near_rim_range_m"] = 16.0  # an example for the figure
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    for rel in ("images/left/0.png", "images/right/0.png", "disparity/0.npy"):
+        (ds / rel).parent.mkdir(parents=True, exist_ok=True)
+        (ds / rel).write_bytes((rendered_set / rel).read_bytes())
+    (ds / "annotations.json").write_text(json.dumps(coco))
+    assert study.main([str(ds), "--out", str(tmp_path / "out"), "--examples", "1"]) == 0
+    metrics = json.loads((tmp_path / "out" / "refiner_study.json").read_text())
+    assert metrics["n_pixels"] > 1000 and metrics["sgbm"] > 0 and metrics["refined"] > 0
+    assert metrics["n_edge_pixels"] <= metrics["n_pixels"]
+    assert (tmp_path / "out" / "refiner_examples.png").stat().st_size > 10_000
+    assert "mean |error| px in the refined regions" in capsys.readouterr().out
+    (ds / "disparity/0.npy").write_bytes(b"junk")
+    assert study.main([str(ds), "--out", str(tmp_path / "bad")]) == 2
+    assert "0.npy: cannot read disparity" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
