@@ -22,6 +22,14 @@ sits lower than the rim where the box also holds the outer flank, and its lifts 
 
 ``--rows-only`` re-reads the rows in ``--out`` (``set0/geometry_craters.json``, ...) instead of
 running again.
+
+With ``--refiner FILE`` the lifts read SGBM's disparity corrected by that disparity refiner
+(``lunarnav train-refiner``), and the fitted terms are written into the file's metadata
+(``lunarnav.edge_offsets``), which the geometry evaluation and ``lunarnav localize`` then use
+with it. Calibrate on development sets the refiner was not trained on:
+
+    .venv/bin/python benchmarks/calibrate_rim_offset.py data/ss/dev_s1k3 --ellipse-source box \
+        --refiner outputs/refiner.onnx --out outputs/refiner_offsets
 """
 
 from __future__ import annotations
@@ -37,7 +45,9 @@ import numpy as np
 from lunarnav_ml.errors import LunarNavError
 from lunarnav_ml.geometry._checks import as_array
 from lunarnav_ml.geometry.lifter import EDGE_OFFSET_TERMS, LifterConfig
+from lunarnav_ml.geometry.refine import DisparityRefiner
 from lunarnav_ml.geometry.report import geometry_report
+from lunarnav_ml.training.refiner import stamp_edge_offsets
 from lunarnav_ml.utils.atomic import write_figure, write_json
 from lunarnav_ml.utils.jsonfile import read_json_file
 
@@ -108,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="LifterConfig.crest_match (default: the lifter's default)")
     p.add_argument("--camera-height", type=float, default=1.5,
                    help="camera height (m) for rows that do not carry theirs")
+    p.add_argument("--refiner", type=Path, default=None,
+                   help="lift from SGBM's disparity corrected by this refiner (ONNX) and write "
+                        "the fitted terms into it")
     p.add_argument("--min-cell", type=int, default=5,
                    help="lifts a (diameter, range band) cell needs to count")
     args = p.parse_args(argv)
@@ -118,11 +131,12 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict[str, Any]] = []
     fits: dict[str, Any] = {}
     try:
+        refiner = None if args.refiner is None else DisparityRefiner(args.refiner)
         for k, gt in enumerate(args.gt):
             part = args.out / f"set{k}"
             if not args.rows_only:
                 geometry_report(gt, part, ellipse_source=args.ellipse_source, lifter=zero,
-                                plots=False)
+                                refiner=refiner, plots=False)
             rows += _checked_rows(part / "geometry_craters.json")
         # fitted ellipses and box ellipses (the fitter's fallback) get their own offsets
         for prefix, from_box in (("", False), ("box_", True)):
@@ -155,7 +169,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"LifterConfig({', '.join(settings)})")
     write_json(args.out / "rim_offset.json", {
         **result, "sets": [str(g) for g in args.gt], "ellipse_source": args.ellipse_source,
-        "crest_match": zero.crest_match})
+        "crest_match": zero.crest_match,
+        "refiner": None if args.refiner is None else str(args.refiner)})
+    if args.refiner is not None:
+        terms = {k: round(float(v), 5) for part in result.values() if part
+                 for k, v in part.items() if k in LifterConfig.__dataclass_fields__}
+        stamp_edge_offsets(args.refiner, terms)
+        print(f"edge offsets written into {args.refiner}: {terms}")
     return 0
 
 

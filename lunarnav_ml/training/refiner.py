@@ -309,6 +309,32 @@ def export_refiner(net: RefinerNet, path: str | Path, extra: dict | None = None,
     return Path(path)
 
 
+def stamp_edge_offsets(path: str | Path, terms: dict[str, float]) -> Path:
+    """Write ``terms`` (:class:`~lunarnav_ml.geometry.lifter.LifterConfig` edge-offset fields)
+    into a refiner file's ``lunarnav.edge_offsets``, replacing any there, atomically.
+
+    Raises:
+        InputError: the file is not a refiner (:class:`DisparityRefiner` checks), or a term is
+            not an edge-offset field or not finite.
+    """
+    import onnx
+
+    from lunarnav_ml.geometry.refine import DisparityRefiner, _edge_offsets
+
+    DisparityRefiner(path)  # a refiner, loadable
+    text = json.dumps(terms)
+    _edge_offsets(text, Path(path))
+    model = onnx.load(str(path))
+    keep = [(p.key, p.value) for p in model.metadata_props if p.key != "lunarnav.edge_offsets"]
+    del model.metadata_props[:]
+    for key, value in [*keep, ("lunarnav.edge_offsets", text)]:
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    with atomic_path(path) as tmp:
+        onnx.save(model, str(tmp))
+    return Path(path)
+
+
 def run(datasets: Sequence[str | Path], out: str | Path, config: RefinerConfig,
         progress: bool = True) -> RefinerReport:
     """Crops, training and export: what ``lunarnav train-refiner`` does."""

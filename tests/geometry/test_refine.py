@@ -234,3 +234,19 @@ def test_refiner_study_script(rendered_set, tmp_path, capsys):
     assert study.main([str(ds), "--out", str(tmp_path / "bad")]) == 2
     assert "0.npy: cannot read disparity" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_stamp_edge_offsets(tmp_path):
+    from lunarnav_ml.training.refiner import stamp_edge_offsets
+
+    path = _export(tmp_path, "r.onnx", **{"lunarnav.edge_offsets": '{"box_rim_offset": 0.5}'})
+    stamp_edge_offsets(path, {"box_rim_offset_m": -0.03, "box_rim_offset_view": -0.1})
+    ref = DisparityRefiner(path)
+    assert ref.edge_offsets == {"box_rim_offset_m": -0.03, "box_rim_offset_view": -0.1}
+    assert ref.receptive_px == RefinerNet(4, (1,)).receptive_px  # the rest of the metadata kept
+    before = path.read_bytes()
+    with pytest.raises(InputError, match="lunarnav.edge_offsets"):
+        stamp_edge_offsets(path, {"ground_rows": 3.0})
+    with pytest.raises(InputError, match="lunarnav.edge_offsets"):
+        stamp_edge_offsets(path, {"box_rim_offset": float("nan")})
+    assert path.read_bytes() == before
