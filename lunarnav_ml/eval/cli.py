@@ -23,6 +23,28 @@ from lunarnav_ml.eval.predict import read_coco_results
 from lunarnav_ml.eval.tta import TTAConfig, TTAPredictor, add_tta_arguments, tta_config
 
 SHIPPED = "shipped"  # --refiner without a file
+
+
+def add_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """``--refiner [ONNX]`` (default: the shipped refiner) and ``--no-refiner``."""
+    p.add_argument("--refiner", nargs="?", const=SHIPPED, default=SHIPPED, metavar="ONNX",
+                   help=f"{prefix}correct SGBM's disparity around each crater box with this "
+                        "refiner from `lunarnav train-refiner` before the lifts (default, or no "
+                        "file: the shipped one; docs/geometry.md)")
+    p.add_argument("--no-refiner", dest="refiner", action="store_const", const=None,
+                   help=f"{prefix}lift from SGBM's disparity as it is")
+
+
+def load_refiner(args: argparse.Namespace) -> Any:
+    """The :class:`~lunarnav_ml.geometry.refine.DisparityRefiner` of ``--refiner`` (None with
+    ``--no-refiner``), on ``--threads`` onnxruntime threads."""
+    if args.refiner is None:
+        return None
+    from lunarnav_ml.geometry.refine import DisparityRefiner
+
+    return DisparityRefiner(None if args.refiner == SHIPPED else args.refiner,
+                            threads=args.threads)
+
 TASKS = ("detection", "geometry", "baselines-lidar", "baselines-stereo", "transfer")
 
 
@@ -94,12 +116,8 @@ def run_geometry(args: argparse.Namespace) -> int:
     from lunarnav_ml.geometry.lifter import load_edge_offsets
     from lunarnav_ml.geometry.report import geometry_report
 
-    refiner = None
-    if args.refiner is not None:
-        from lunarnav_ml.geometry.refine import DisparityRefiner
-
-        refiner = DisparityRefiner(None if args.refiner == SHIPPED else args.refiner,
-                                   threads=args.threads)
+    # the rendered disparity is exact: nothing to refine
+    refiner = load_refiner(args) if args.disparity == "sgbm" else None
     # the refiner's own edge offsets (if any) unless a calibration file is given
     lifter = load_edge_offsets(args.edge_offsets) if args.edge_offsets else None
     summary = geometry_report(Path(args.test_gt), args.out, detections=args.test_results,
@@ -221,9 +239,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--disparity", choices=("sgbm", "rendered"), default="sgbm",
                    help="(geometry) SGBM on the pair, or the dataset's rendered disparity "
                         "(isolates the lifter)")
-    p.add_argument("--refiner", nargs="?", const=SHIPPED, default=None, metavar="ONNX",
-                   help="(geometry) correct SGBM's disparity around each crater with a refiner "
-                        "from `lunarnav train-refiner` (no file: the shipped one)")
+    add_refiner_arguments(p, "(geometry) ")
     p.add_argument("--prior-sigma", type=float, default=1.0,
                    help="(baselines-lidar) map-prior position error per axis, m: each map "
                         "crater's prior center is offset by N(0, sigma); placements farther "

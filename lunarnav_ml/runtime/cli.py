@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from lunarnav_ml.errors import ConfigError, InputError
-from lunarnav_ml.eval.cli import SHIPPED
+from lunarnav_ml.eval.cli import add_refiner_arguments, load_refiner
 from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
 
 
@@ -46,9 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--lift-from", default="box", choices=("box", "fit"),
                    help="lift each crater from the box's inscribed ellipse (default) or from "
                         "the fitted rim ellipse; the fitted one is reported either way")
-    p.add_argument("--refiner", nargs="?", const=SHIPPED, default=None, metavar="ONNX",
-                   help="correct SGBM's disparity around each crater with a refiner from "
-                        "`lunarnav train-refiner` before the lifts (no file: the shipped one)")
+    add_refiner_arguments(p)
     p.add_argument("--out", type=Path, default=Path("outputs/localize"), help="output folder")
     p.set_defaults(func=run_localize)
 
@@ -90,12 +88,7 @@ def run_localize(args: argparse.Namespace) -> int:
     except InputError as err:
         raise InputError(f"{args.camera}: {err}") from None
     weights = args.weights or DEFAULT_WEIGHTS
-    refiner = None
-    if args.refiner is not None:
-        from lunarnav_ml.geometry.refine import DisparityRefiner
-
-        refiner = DisparityRefiner(None if args.refiner == SHIPPED else args.refiner,
-                                   threads=args.threads)
+    refiner = load_refiner(args)
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
     localizer = StereoCraterLocalizer(load_predictor(weights, args.threads, args.img_size), rig,

@@ -10,6 +10,7 @@ import pytest
 
 from lunarnav_ml.cli import main
 from lunarnav_ml.errors import InputError
+from lunarnav_ml.geometry.refine import DEFAULT_REFINER
 from lunarnav_ml.runtime.cli import DEFAULT_WEIGHTS, read_camera
 from tests.geometry.geometry_scene import render_crater_scene
 
@@ -46,6 +47,7 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     assert np.hypot(*(np.array(best["center_m"][:2]) - sc.center_rover[:2])) < max(1.0, 0.25 * d)
     assert abs(best["diameter_m"] - d) < 0.25 * d
     assert out["sgbm"] == {"mode": "hh", "num_disparities": 80} and out["lift_from"] == "box"
+    assert out["refiner"] == str(DEFAULT_REFINER)  # on by default
     assert np.array(best["covariance_xyzd"]).shape == (4, 4) and best["sigma_horizontal_m"] > 0
     assert cv2.imread(str(tmp_path / "overlay.jpg")).shape == (480, 640, 3)
     assert set(out["timing_ms"]) == {"detect", "stereo", "craters"}
@@ -56,9 +58,10 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
 def test_an_onnx_model_runs_through_the_onboard_runtime(pair, onnx_path, tmp_path):
     root, _ = pair
     assert _run(root, "--weights", str(onnx_path), "--conf", "0.01", "--threads", "1",
-                "--sgbm-mode", "3way", "--lift-from", "fit", "--out", str(tmp_path)) == 0
+                "--sgbm-mode", "3way", "--lift-from", "fit", "--no-refiner",
+                "--out", str(tmp_path)) == 0
     out = json.loads((tmp_path / "craters3d.json").read_text())
-    assert out["lift_from"] == "fit"
+    assert out["lift_from"] == "fit" and out["refiner"] is None
     assert out["sgbm"] == {"mode": "3way", "num_disparities": 80}  # sized to 640 px
     assert all(c["ok"] == ("center_m" in c) for c in out["craters"])
     assert out["weights"] == str(onnx_path)
@@ -105,7 +108,7 @@ CAMERA_FAULTS = {  # case: (camera fields, expected message)
 
 
 @pytest.mark.parametrize("case", [*CAMERA_FAULTS, "camera_corrupt", "sizes", "left_missing",
-                                  "conf"])
+                                  "conf", "refiner_missing"])
 def test_bad_inputs_are_one_line_and_write_nothing(pair, tmp_path, capsys, case):
     root, _ = pair
     work = tmp_path / "in"
@@ -117,7 +120,8 @@ def test_bad_inputs_are_one_line_and_write_nothing(pair, tmp_path, capsys, case)
         "camera_corrupt": "camera.json: camera is not valid JSON",
         "sizes": "right.png: 320x240 px, but the left image is 640x480",
         "left_missing": "left.png: image file not found",
-        "conf": "--conf must lie in [0, 1]"}[case]
+        "conf": "--conf must lie in [0, 1]",
+        "refiner_missing": "nope.onnx: disparity refiner not found"}[case]
     if case in CAMERA_FAULTS:
         rec = json.loads((work / "camera.json").read_text())
         rec["camera"].update(CAMERA_FAULTS[case][0])
@@ -128,8 +132,10 @@ def test_bad_inputs_are_one_line_and_write_nothing(pair, tmp_path, capsys, case)
         cv2.imwrite(str(work / "right.png"), np.zeros((240, 320), np.uint8))
     elif case == "left_missing":
         (work / "left.png").unlink()
-    else:
+    elif case == "conf":
         extra = ["--conf", "1.5"]
+    else:
+        extra = ["--refiner", str(work / "nope.onnx")]
     code = _run(work, *extra, "--out", str(tmp_path / "out"))
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and expect in err[0], err
