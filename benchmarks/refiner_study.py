@@ -31,7 +31,7 @@ from lunarnav_ml.geometry._checks import crater_labels_3d
 from lunarnav_ml.geometry.lifter import rows_needed
 from lunarnav_ml.geometry.refine import DisparityRefiner, refine_regions
 from lunarnav_ml.geometry.stereo import SGBMStereo
-from lunarnav_ml.training.refiner import MAX_TARGET_PX, MIN_DIAMETER_M, _annotations
+from lunarnav_ml.training.refiner import MAX_TARGET_PX, MIN_DIAMETER_M, annotations_file
 from lunarnav_ml.utils.atomic import write_figure, write_json
 from lunarnav_ml.utils.images import read_disparity
 from lunarnav_ml.utils.jsonfile import read_json_file
@@ -47,7 +47,7 @@ def _edges(rendered: np.ndarray) -> np.ndarray:
 
 
 def study(dataset: Path, refiner: DisparityRefiner, max_images: int | None) -> dict:
-    ann_path = _annotations(dataset)
+    ann_path = annotations_file(dataset)
     coco = read_json_file(ann_path, "annotations", expect=dict)
     by_image: dict[int, list[dict]] = {}
     for a in crater_labels_3d(ann_path, coco):

@@ -125,7 +125,9 @@ class Crops:
         return len(self.left)
 
 
-def _annotations(dataset: Path) -> Path:
+def annotations_file(dataset: Path) -> Path:
+    """A rendered set's annotations: the file itself, or in its folder ``annotations.json`` or
+    the one ``annotations*.json`` shard."""
     path = dataset / "annotations.json" if dataset.is_dir() else dataset
     if path.is_file():
         return path
@@ -171,7 +173,7 @@ def build_crops(datasets: Sequence[str | Path], seed: int = 65, progress: bool =
     rng = np.random.default_rng(seed)
     parts: dict[str, list[np.ndarray]] = {"left": [], "warped": [], "sgbm": [], "rendered": []}
     for dataset in datasets:
-        ann_path = _annotations(Path(dataset))
+        ann_path = annotations_file(Path(dataset))
         coco = read_json_file(ann_path, "annotations", expect=dict)
         targets: dict[int, list[dict]] = {}
         for a in crater_labels_3d(ann_path, coco):
