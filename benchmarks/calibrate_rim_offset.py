@@ -172,8 +172,8 @@ def main(argv: list[str] | None = None) -> int:
         "crest_match": zero.crest_match,
         "refiner": None if args.refiner is None else str(args.refiner)})
     if args.refiner is not None:
-        terms = {k: round(float(v), 5) for part in result.values() if part
-                 for k, v in part.items() if k in LifterConfig.__dataclass_fields__}
+        terms = {k: round(float(result[section][k]), 5)
+                 for section, keys in EDGE_OFFSET_TERMS.items() if result[section] for k in keys}
         stamp_edge_offsets(args.refiner, terms)
         print(f"edge offsets written into {args.refiner}: {terms}")
     return 0

@@ -46,7 +46,7 @@ from lunarnav_ml.geometry.lifter import (
     _tries,
     rows_needed,
 )
-from lunarnav_ml.geometry.report import _evaluated, _read_gray, summarize
+from lunarnav_ml.geometry.report import evaluated_label, read_gray, summarize
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.utils.atomic import write_json
 from lunarnav_ml.utils.images import read_disparity
@@ -86,7 +86,7 @@ def candidates(gt: Path, out: Path, rendered: bool = False, label_ellipse: bool 
     root = gt.parent
     anns: dict[int, list[dict[str, Any]]] = {}
     for ann in crater_labels_3d(gt, coco):
-        if _evaluated(ann, 4.5):  # the geometry report's craters (its default min_diameter_m)
+        if evaluated_label(ann, 4.5):  # the geometry report's craters (its default min_diameter_m)
             anns.setdefault(ann["image_id"], []).append(ann)
     rows = []
     images = [im for im in coco["images"] if im.get("right_file") and anns.get(im["id"])]
@@ -96,7 +96,7 @@ def candidates(gt: Path, out: Path, rendered: bool = False, label_ellipse: bool 
         if rendered:
             disp, pair = read_disparity(root, im), None
         else:
-            pair = (_read_gray(root, im["file_name"]), _read_gray(root, im["right_file"]))
+            pair = (read_gray(root, im["file_name"]), read_gray(root, im["right_file"]))
             disp = _disparity(out / "disparity", im, boxes, pair, ZERO)
         for ann, box in zip(anns[im["id"]], boxes):
             ell = Ellipse.from_array(ann["ellipse"]) if label_ellipse else Ellipse.from_box(box)

@@ -30,8 +30,9 @@ from lunarnav_ml.errors import REPORTED_ERRORS
 from lunarnav_ml.geometry._checks import crater_labels_3d
 from lunarnav_ml.geometry.lifter import rows_needed
 from lunarnav_ml.geometry.refine import DisparityRefiner, refine_regions
+from lunarnav_ml.geometry.report import annotations_path, evaluated_label, read_gray
 from lunarnav_ml.geometry.stereo import SGBMStereo
-from lunarnav_ml.training.refiner import MAX_TARGET_PX, MIN_DIAMETER_M, annotations_file
+from lunarnav_ml.training.refiner import MAX_TARGET_PX, MIN_DIAMETER_M
 from lunarnav_ml.utils.atomic import write_figure, write_json
 from lunarnav_ml.utils.images import read_disparity
 from lunarnav_ml.utils.jsonfile import read_json_file
@@ -47,18 +48,18 @@ def _edges(rendered: np.ndarray) -> np.ndarray:
 
 
 def study(dataset: Path, refiner: DisparityRefiner, max_images: int | None) -> dict:
-    ann_path = annotations_file(dataset)
+    ann_path = annotations_path(dataset)
     coco = read_json_file(ann_path, "annotations", expect=dict)
     by_image: dict[int, list[dict]] = {}
     for a in crater_labels_3d(ann_path, coco):
-        if not a.get("ignore") and not a.get("iscrowd") and a["diameter_m"] >= MIN_DIAMETER_M:
+        if evaluated_label(a, MIN_DIAMETER_M):
             by_image.setdefault(a["image_id"], []).append(a)
     images = [im for im in coco["images"] if by_image.get(im["id"])][:max_images]
     sums = {k: np.zeros(2) for k in ("sgbm", "refined", "sgbm_edge", "refined_edge")}
     examples = []
     for k, im in enumerate(images):
-        left = cv2.imread(str(ann_path.parent / im["file_name"]), cv2.IMREAD_GRAYSCALE)
-        right = cv2.imread(str(ann_path.parent / im["right_file"]), cv2.IMREAD_GRAYSCALE)
+        left = read_gray(ann_path.parent, im["file_name"])
+        right = read_gray(ann_path.parent, im["right_file"])
         boxes = np.array([a["bbox"] for a in by_image[im["id"]]], float)
         band = rows_needed(boxes, left.shape[0])
         sgbm = SGBMStereo.for_width(left.shape[1])(left, right, band).disparity

@@ -175,14 +175,21 @@ def build_metadata(parts: DetectorParts, size: tuple[int, int], *, opset: int, n
 def trace_to_onnx(module: nn.Module, size: tuple[int, int], opset: int, dynamic: bool
                   ) -> onnx.ModelProto:
     """Trace ``module`` (input ``images``, output ``decoded``) to an ONNX model in memory."""
-    dummy = torch.zeros(1, 3, *size)
     axes = {md.INPUT_NAME: {0: "batch", 2: "height", 3: "width"},
             md.DECODED_NAME: {0: "batch", 1: "candidates"}} if dynamic else None
+    return trace_module(module, torch.zeros(1, 3, *size), md.INPUT_NAME, md.DECODED_NAME,
+                        axes, opset)
+
+
+def trace_module(module: nn.Module, dummy: torch.Tensor, input_name: str, output_name: str,
+                 axes: dict[str, dict[int, str]] | None, opset: int) -> onnx.ModelProto:
+    """Trace a one-input, one-output ``module`` on ``dummy`` to an ONNX model in memory
+    (TorchScript exporter, constants folded; ``axes``: the dynamic axes by name)."""
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation/tracer notes
         torch.onnx.export(module, (dummy,), buf, opset_version=opset, dynamo=False,
-                          input_names=[md.INPUT_NAME], output_names=[md.DECODED_NAME],
+                          input_names=[input_name], output_names=[output_name],
                           dynamic_axes=axes, do_constant_folding=True)
     return onnx.load_from_string(buf.getvalue())
 

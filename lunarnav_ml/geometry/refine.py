@@ -107,6 +107,12 @@ def _edge_offsets(text: str | None, path: Path) -> dict[str, float]:
     return {k: float(v) for k, v in terms.items()}
 
 
+def default_lifter(refiner: DisparityRefiner | None) -> LifterConfig:
+    """The lifter settings to use with ``refiner``'s disparity: :class:`LifterConfig` with the
+    refiner's edge offsets (the defaults without a refiner)."""
+    return refiner.lifter_config() if refiner is not None else LifterConfig()
+
+
 class DisparityRefiner:
     """Refine SGBM's disparity with an exported refiner (``lunarnav train-refiner``).
 

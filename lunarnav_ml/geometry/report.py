@@ -33,7 +33,7 @@ from lunarnav_ml.geometry._checks import crater_labels_3d
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
 from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater, rows_needed
-from lunarnav_ml.geometry.refine import DisparityRefiner
+from lunarnav_ml.geometry.refine import DisparityRefiner, default_lifter
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.utils.atomic import finite_or_none, write_figure, write_json, write_text
 from lunarnav_ml.utils.images import read_disparity
@@ -111,7 +111,7 @@ def geometry_report(
         raise InputError(f"ellipse_source: expected one of {ELLIPSE_SOURCES}, got {ellipse_source!r}")
     if disparity not in DISPARITY_SOURCES:
         raise InputError(f"disparity: expected one of {DISPARITY_SOURCES}, got {disparity!r}")
-    ann_path = _annotations_path(dataset_dir)
+    ann_path = annotations_path(dataset_dir)
     coco = read_json_file(ann_path, "annotations", expect=dict)
     images = [im for im in coco.get("images", []) if im.get("right_file") and im.get("camera")]
     if not images:
@@ -120,14 +120,12 @@ def geometry_report(
     dets = _load_detections(detections, score_threshold)
     by_image = defaultdict(list)
     for ann in crater_labels_3d(ann_path, coco):
-        if _evaluated(ann, min_diameter_m):
+        if evaluated_label(ann, min_diameter_m):
             by_image[ann["image_id"]].append(ann)
     if refiner is not None and disparity != "sgbm":
         raise InputError(f"refiner: refines SGBM's disparity, not the {disparity!r} one")
-    if lifter is None:  # a refined disparity has its own edge offsets
-        lifter = refiner.lifter_config() if refiner is not None else LifterConfig()
-    settings = _Settings(stereo, lifter, fitter or EllipseFitter(), ellipse_source,
-                         disparity, box_jitter, seed, refiner)
+    settings = _Settings(stereo, lifter or default_lifter(refiner), fitter or EllipseFitter(),
+                         ellipse_source, disparity, box_jitter, seed, refiner)
     rows: list[dict[str, Any]] = []
     for im in tqdm(images, desc="geometry", unit="img", disable=not progress):
         if by_image.get(im["id"]):
@@ -153,15 +151,20 @@ class _Settings:
         self.refiner = refiner
 
 
-def _annotations_path(dataset_dir: str | Path) -> Path:
+def annotations_path(dataset_dir: str | Path) -> Path:
+    """A stereo set's annotations: the file itself, or in its folder ``annotations.json`` (or,
+    without one, its only ``annotations*.json``, as a ``lunarnav synth --shard`` render writes).
+    """
     path = Path(dataset_dir)
-    path = path / "annotations.json" if path.is_dir() else path
+    if path.is_dir():
+        shards = sorted(path.glob("annotations*.json"))
+        path = shards[0] if len(shards) == 1 else path / "annotations.json"
     if not path.is_file():
         raise InputError(f"{path}: annotations file not found")
     return path
 
 
-def _evaluated(ann: dict[str, Any], min_diameter_m: float) -> bool:
+def evaluated_label(ann: dict[str, Any], min_diameter_m: float) -> bool:
     """A checked 3D crater label (``crater_labels_3d``) that the report scores."""
     return (not ann.get("ignore", False) and not ann.get("iscrowd", 0)
             and ann["diameter_m"] >= min_diameter_m)
@@ -183,7 +186,8 @@ def _load_detections(
     return out
 
 
-def _read_gray(root: Path, rel: str) -> np.ndarray:
+def read_gray(root: Path, rel: str) -> np.ndarray:
+    """The image ``root / rel`` in gray, uint8."""
     img = cv2.imread(str(root / rel), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise InputError(f"{root / rel}: cannot read image")
@@ -202,12 +206,12 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
     left = right = disp = None
     timing = {}
     if used:  # with detections that missed every crater there is nothing to lift
-        left = _read_gray(root, im["file_name"])
+        left = read_gray(root, im["file_name"])
         t0 = time.perf_counter()
         if cfg.disparity == "rendered":  # the right image is not needed
             disp = read_disparity(root, im)
         else:
-            right = _read_gray(root, im["right_file"])
+            right = read_gray(root, im["right_file"])
             # the matcher's band from the COCO boxes (_box_for moved them by -0.5 px)
             coco = np.array(used) + np.array([0.5, 0.5, 0.0, 0.0])
             rows = rows_needed(coco, left.shape[0], cfg.lifter)

@@ -21,7 +21,7 @@ from lunarnav_ml.geometry._checks import as_image
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig
 from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater, rows_needed
-from lunarnav_ml.geometry.refine import DisparityRefiner
+from lunarnav_ml.geometry.refine import DisparityRefiner, default_lifter
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.runtime.preprocess import check_image
 
@@ -112,9 +112,7 @@ class StereoCraterLocalizer:
         self.conf_thres, self.iou_thres = conf_thres, iou_thres
         self.stereo = stereo
         self.fitter = fitter or EllipseFitter()
-        if lifter is None:  # a refined disparity has its own edge offsets
-            lifter = refiner.lifter_config() if refiner is not None else LifterConfig()
-        self.lifter = lifter
+        self.lifter = lifter or default_lifter(refiner)  # a refined map has its own offsets
         self.lift_from = lift_from
         self.refiner = refiner
         self.timing_ms: dict[str, float] = {}  # the last frame's, see __call__

@@ -113,7 +113,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--batch", type=int, default=None, help="crops per step (default 16)")
     p.add_argument("--lr", type=float, default=None, help="peak Adam rate (default 1e-3)")
     p.add_argument("--channels", type=int, default=None, help="width of the net (default 32)")
-    p.add_argument("--seed", type=int, default=None, 
+    p.add_argument("--seed", type=int, default=None,
                    help="seed of the crops, the split and the weights (default 65)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -19,14 +19,13 @@ The export is an ONNX file with dynamic height and width, read by
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -45,6 +44,7 @@ from lunarnav_ml.geometry.refine import (
     refiner_features,
     warp_right,
 )
+from lunarnav_ml.geometry.report import annotations_path, evaluated_label, read_gray
 from lunarnav_ml.geometry.stereo import SGBMStereo
 from lunarnav_ml.utils.atomic import atomic_path
 from lunarnav_ml.utils.images import read_disparity
@@ -125,27 +125,6 @@ class Crops:
         return len(self.left)
 
 
-def annotations_file(dataset: Path) -> Path:
-    """A rendered set's annotations: the file itself, or in its folder ``annotations.json`` or
-    the one ``annotations*.json`` shard."""
-    path = dataset / "annotations.json" if dataset.is_dir() else dataset
-    if path.is_file():
-        return path
-    shards = sorted(dataset.glob("annotations*.json")) if dataset.is_dir() else []
-    if len(shards) == 1:
-        return shards[0]
-    raise InputError(f"{dataset}: no annotations.json (or a single annotations*.json shard)")
-
-
-def _read_gray(path: Path) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise InputError(f"{path}: missing or unreadable image")
-    return img
-
-
 def _centres(targets: list[dict], others: list[dict], band: tuple[int, int], width: int,
              rng: np.random.Generator) -> list[tuple[float, float]]:
     """Crop centres: the near half of each target's box ellipse (8), one near-half point of
@@ -173,11 +152,11 @@ def build_crops(datasets: Sequence[str | Path], seed: int = 65, progress: bool =
     rng = np.random.default_rng(seed)
     parts: dict[str, list[np.ndarray]] = {"left": [], "warped": [], "sgbm": [], "rendered": []}
     for dataset in datasets:
-        ann_path = annotations_file(Path(dataset))
+        ann_path = annotations_path(dataset)
         coco = read_json_file(ann_path, "annotations", expect=dict)
         targets: dict[int, list[dict]] = {}
         for a in crater_labels_3d(ann_path, coco):
-            if not a.get("ignore") and not a.get("iscrowd") and a["diameter_m"] >= MIN_DIAMETER_M:
+            if evaluated_label(a, MIN_DIAMETER_M):
                 targets.setdefault(a["image_id"], []).append(a)
         others: dict[int, list[dict]] = {}
         for a in coco["annotations"]:
@@ -190,8 +169,8 @@ def build_crops(datasets: Sequence[str | Path], seed: int = 65, progress: bool =
         for im in tqdm(images, desc=f"crops {Path(dataset).name}", disable=not progress):
             if not im.get("right_file"):
                 raise InputError(f"{ann_path}: images[{im['id']}] has no right_file")
-            left = _read_gray(ann_path.parent / im["file_name"])
-            right = _read_gray(ann_path.parent / im["right_file"])
+            left = read_gray(ann_path.parent, im["file_name"])
+            right = read_gray(ann_path.parent, im["right_file"])
             tg = targets[im["id"]]
             band = rows_needed(np.array([a["bbox"] for a in tg], float), left.shape[0])
             sgbm = (stereo or SGBMStereo.for_width(left.shape[1]))(left, right, band).disparity
@@ -288,24 +267,25 @@ def export_refiner(net: RefinerNet, path: str | Path, extra: dict | None = None,
                    opset: int = 17) -> Path:
     """Write ``net`` as an ONNX refiner (dynamic batch, height and width) with its metadata,
     atomically."""
-    import onnx
+    from lunarnav_ml.export.onnx_export import trace_module
 
-    net = net.eval()
-    buf = io.BytesIO()
     axes = {FEATURES_NAME: {0: "batch", 2: "height", 3: "width"},
             DELTA_NAME: {0: "batch", 1: "height", 2: "width"}}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(net, (torch.zeros(1, N_FEATURES, CROP, CROP),), buf,
-                          opset_version=opset, dynamo=False, input_names=[FEATURES_NAME],
-                          output_names=[DELTA_NAME], dynamic_axes=axes,
-                          do_constant_folding=True)
-    model = onnx.load_from_string(buf.getvalue())
+    model = trace_module(net.eval(), torch.zeros(1, N_FEATURES, CROP, CROP), FEATURES_NAME,
+                         DELTA_NAME, axes, opset)
     props = {"lunarnav.kind": KIND, "lunarnav.receptive_px": str(net.receptive_px),
              "lunarnav.project_version": __version__, **(extra or {})}
-    for key, value in props.items():
-        entry = model.metadata_props.add()
-        entry.key, entry.value = key, value
+    return _save(model, props, path)
+
+
+def _save(model: Any, props: dict[str, str], path: str | Path) -> Path:
+    """``model`` with ``props`` set in its metadata (replacing those keys), saved atomically."""
+    import onnx
+
+    keep = [(p.key, p.value) for p in model.metadata_props if p.key not in props]
+    del model.metadata_props[:]
+    for key, value in [*keep, *props.items()]:
+        model.metadata_props.add(key=key, value=value)
     with atomic_path(path) as tmp:
         onnx.save(model, str(tmp))
     return Path(path)
@@ -326,15 +306,7 @@ def stamp_edge_offsets(path: str | Path, terms: dict[str, float]) -> Path:
     DisparityRefiner(path)  # a refiner, loadable
     text = json.dumps(terms)
     _edge_offsets(text, Path(path))
-    model = onnx.load(str(path))
-    keep = [(p.key, p.value) for p in model.metadata_props if p.key != "lunarnav.edge_offsets"]
-    del model.metadata_props[:]
-    for key, value in [*keep, ("lunarnav.edge_offsets", text)]:
-        entry = model.metadata_props.add()
-        entry.key, entry.value = key, value
-    with atomic_path(path) as tmp:
-        onnx.save(model, str(tmp))
-    return Path(path)
+    return _save(onnx.load(str(path)), {"lunarnav.edge_offsets": text}, path)
 
 
 def run(datasets: Sequence[str | Path], out: str | Path, config: RefinerConfig,

@@ -82,6 +82,27 @@ def test_fitted_and_box_ellipses_get_their_own_offsets(tmp_path, capsys):
     assert cfg.box_rim_offset_m == got["box_ellipses"]["box_rim_offset_m"]
 
 
+def test_the_terms_are_written_into_a_refiner(tmp_path, capsys):
+    from lunarnav_ml.geometry.refine import DisparityRefiner
+    from lunarnav_ml.training.refiner import RefinerNet, export_refiner
+
+    refiner = export_refiner(RefinerNet(4, (1,)), tmp_path / "r.onnx")
+    rows = _rows(-0.2, 0.07, -0.15) + [{**r, "from_box": True} for r in _rows(0.0, 0.09, seed=1)]
+    (tmp_path / "set0").mkdir()
+    (tmp_path / "set0" / "geometry_craters.json").write_text(json.dumps(rows))
+    assert cal.main(["unused.json", "--out", str(tmp_path), "--rows-only",
+                     "--refiner", str(refiner)]) == 0
+    got = json.loads((tmp_path / "rim_offset.json").read_text())
+    offsets = DisparityRefiner(refiner).edge_offsets
+    assert set(offsets) == {"rim_offset", "rim_offset_m", "rim_offset_view", "box_rim_offset",
+                            "box_rim_offset_m", "box_rim_offset_view"}
+    for section in ("fitted_ellipses", "box_ellipses"):
+        for key, value in got[section].items():
+            if key in offsets:
+                assert offsets[key] == pytest.approx(value, abs=1e-5)
+    assert got["refiner"] == str(refiner) and "written into" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("bad, field", [({"near_rim_range_m": None}, "near_rim_range_m"),
                                         ({"center_err_xy_m": [0.1]}, "center_err_xy_m"),
                                         ({"truth_center_m": ["x", 1.0]}, "truth_center_m")])
