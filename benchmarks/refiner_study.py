@@ -27,15 +27,13 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from lunarnav_ml.errors import REPORTED_ERRORS
-from lunarnav_ml.geometry._checks import crater_labels_3d
 from lunarnav_ml.geometry.lifter import rows_needed
 from lunarnav_ml.geometry.refine import DisparityRefiner, refine_regions
-from lunarnav_ml.geometry.report import annotations_path, evaluated_label, read_gray
+from lunarnav_ml.geometry.report import read_gray
 from lunarnav_ml.geometry.stereo import SGBMStereo
-from lunarnav_ml.training.refiner import MAX_TARGET_PX, MIN_DIAMETER_M
+from lunarnav_ml.training.refiner import MAX_TARGET_PX, evaluated_craters
 from lunarnav_ml.utils.atomic import write_figure, write_json
 from lunarnav_ml.utils.images import read_disparity
-from lunarnav_ml.utils.jsonfile import read_json_file
 
 
 def _edges(rendered: np.ndarray) -> np.ndarray:
@@ -48,12 +46,7 @@ def _edges(rendered: np.ndarray) -> np.ndarray:
 
 
 def study(dataset: Path, refiner: DisparityRefiner, max_images: int | None) -> dict:
-    ann_path = annotations_path(dataset)
-    coco = read_json_file(ann_path, "annotations", expect=dict)
-    by_image: dict[int, list[dict]] = {}
-    for a in crater_labels_3d(ann_path, coco):
-        if evaluated_label(a, MIN_DIAMETER_M):
-            by_image.setdefault(a["image_id"], []).append(a)
+    ann_path, coco, by_image = evaluated_craters(dataset)
     images = [im for im in coco["images"] if by_image.get(im["id"])][:max_images]
     sums = {k: np.zeros(2) for k in ("sgbm", "refined", "sgbm_edge", "refined_edge")}
     examples = []

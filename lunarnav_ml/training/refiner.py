@@ -141,6 +141,18 @@ def _centres(targets: list[dict], others: list[dict], band: tuple[int, int], wid
     return out
 
 
+def evaluated_craters(dataset: str | Path) -> tuple[Path, dict, dict[int, list[dict]]]:
+    """A rendered set's annotations file, its COCO object and the craters the geometry
+    evaluation scores (D >= 4.5 m, 3D labels), by image id."""
+    ann_path = annotations_path(dataset)
+    coco = read_json_file(ann_path, "annotations", expect=dict)
+    by_image: dict[int, list[dict]] = {}
+    for a in crater_labels_3d(ann_path, coco):
+        if evaluated_label(a, MIN_DIAMETER_M):
+            by_image.setdefault(a["image_id"], []).append(a)
+    return ann_path, coco, by_image
+
+
 def build_crops(datasets: Sequence[str | Path], seed: int = 65, progress: bool = True,
                 stereo: Callable | None = None) -> Crops:
     """Cut training crops from rendered stereo sets (module docstring).
@@ -152,12 +164,7 @@ def build_crops(datasets: Sequence[str | Path], seed: int = 65, progress: bool =
     rng = np.random.default_rng(seed)
     parts: dict[str, list[np.ndarray]] = {"left": [], "warped": [], "sgbm": [], "rendered": []}
     for dataset in datasets:
-        ann_path = annotations_path(dataset)
-        coco = read_json_file(ann_path, "annotations", expect=dict)
-        targets: dict[int, list[dict]] = {}
-        for a in crater_labels_3d(ann_path, coco):
-            if evaluated_label(a, MIN_DIAMETER_M):
-                targets.setdefault(a["image_id"], []).append(a)
+        ann_path, coco, targets = evaluated_craters(dataset)
         others: dict[int, list[dict]] = {}
         for a in coco["annotations"]:
             if a.get("category_id") == 1 and a["bbox"][2] >= 10:
