@@ -30,6 +30,10 @@ with it. Calibrate on development sets the refiner was not trained on:
 
     .venv/bin/python benchmarks/calibrate_rim_offset.py data/ss/dev_s1k3 --ellipse-source box \
         --refiner outputs/refiner.onnx --out outputs/refiner_offsets
+
+``--max-disparity PX`` and ``--passes N`` calibrate the refiner with that gate and pass count
+(:class:`~lunarnav_ml.geometry.refine.DisparityRefiner`) and write them into the file with the
+terms.
 """
 
 from __future__ import annotations
@@ -121,6 +125,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--refiner", type=Path, default=None,
                    help="lift from SGBM's disparity corrected by this refiner (ONNX) and write "
                         "the fitted terms into it")
+    p.add_argument("--max-disparity", type=float, default=None,
+                   help="with --refiner: refine only boxes whose SGBM median disparity over "
+                        "the box's lower half is below this (px); written into the file")
+    p.add_argument("--passes", type=int, default=1,
+                   help="with --refiner: refinement passes; written into the file")
     p.add_argument("--min-cell", type=int, default=5,
                    help="lifts a (diameter, range band) cell needs to count")
     args = p.parse_args(argv)
@@ -131,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict[str, Any]] = []
     fits: dict[str, Any] = {}
     try:
-        refiner = None if args.refiner is None else DisparityRefiner(args.refiner)
+        refiner = None if args.refiner is None else DisparityRefiner(
+            args.refiner, max_disparity_px=args.max_disparity, passes=args.passes)
         for k, gt in enumerate(args.gt):
             part = args.out / f"set{k}"
             if not args.rows_only:
@@ -170,12 +180,14 @@ def main(argv: list[str] | None = None) -> int:
     write_json(args.out / "rim_offset.json", {
         **result, "sets": [str(g) for g in args.gt], "ellipse_source": args.ellipse_source,
         "crest_match": zero.crest_match,
-        "refiner": None if args.refiner is None else str(args.refiner)})
+        "refiner": None if args.refiner is None else str(args.refiner),
+        "refiner_max_disparity_px": args.max_disparity, "refiner_passes": args.passes})
     if args.refiner is not None:
         terms = {k: round(float(result[section][k]), 5)
                  for section, keys in EDGE_OFFSET_TERMS.items() if result[section] for k in keys}
-        stamp_edge_offsets(args.refiner, terms)
-        print(f"edge offsets written into {args.refiner}: {terms}")
+        stamp_edge_offsets(args.refiner, terms, args.max_disparity, args.passes)
+        print(f"edge offsets written into {args.refiner}: {terms} (max_disparity_px "
+              f"{args.max_disparity}, passes {args.passes})")
     return 0
 
 

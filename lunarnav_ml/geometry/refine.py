@@ -18,7 +18,11 @@ regions around crater boxes, each padded by that radius, gives the same values t
 refining the whole band. It may carry ``lunarnav.edge_offsets``, a JSON object of
 :class:`~lunarnav_ml.geometry.lifter.LifterConfig` edge-offset terms calibrated on lifts from the
 refined disparity (``benchmarks/calibrate_rim_offset.py``): the visible edge's offset in front
-of the crest is partly the matcher's, so a refined map needs its own.
+of the crest is partly the matcher's, so a refined map needs its own. Two more keys go with
+those offsets, as they change the lifts they were fitted on: ``lunarnav.max_disparity_px``
+(refine only the boxes whose SGBM disparity over the box's lower half has a median below it:
+near craters, with 2-3x the far ones' disparity, are left to SGBM) and ``lunarnav.passes``
+(refine the refined map again, the right image warped anew).
 """
 
 from __future__ import annotations
@@ -107,6 +111,66 @@ def _edge_offsets(text: str | None, path: Path) -> dict[str, float]:
     return {k: float(v) for k, v in terms.items()}
 
 
+def _gate_setting(text: str | None, path: Path) -> float | None:
+    """The ``lunarnav.max_disparity_px`` of a refiner file (None: absent or "none")."""
+    if text is None or text == "none":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise InputError(f"{path}: metadata lunarnav.max_disparity_px: expected a positive "
+                         f"number or 'none', got {text[:80]!r}")
+    return value
+
+
+def _passes_setting(text: str | None, path: Path) -> int:
+    """The ``lunarnav.passes`` of a refiner file (1 when absent)."""
+    if text is None:
+        return 1
+    if not text.isdigit() or int(text) < 1:
+        raise InputError(f"{path}: metadata lunarnav.passes: expected a positive integer, "
+                         f"got {text[:80]!r}")
+    return int(text)
+
+
+def check_settings(max_disparity_px: float | None, passes: int) -> None:
+    """Raise :class:`InputError` for a gate that is not a positive number (or None) or a pass
+    count that is not a positive integer."""
+    if max_disparity_px is not None and not (
+            isinstance(max_disparity_px, int | float) and not isinstance(max_disparity_px, bool)
+            and np.isfinite(max_disparity_px) and max_disparity_px > 0):
+        raise InputError(f"max_disparity_px: expected a positive number or None, got "
+                         f"{max_disparity_px!r}")
+    if not isinstance(passes, int) or isinstance(passes, bool) or passes < 1:
+        raise InputError(f"passes: expected a positive integer, got {passes!r}")
+
+
+def gated_boxes(disparity: np.ndarray, boxes_xywh: np.ndarray,
+                max_disparity_px: float | None) -> np.ndarray:
+    """Which boxes a refiner with this gate refines: those whose valid disparity over the box's
+    lower half (the near rim and the floor) has a median below ``max_disparity_px``, and those
+    with no valid pixel there (the gate cannot tell); all of them without a gate.
+
+    Shape:
+        disparity: (H, W) px, NaN invalid; boxes_xywh: (K, 4) px. Returns (K,) bool.
+    """
+    boxes = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
+    if max_disparity_px is None:
+        return np.ones(len(boxes), bool)
+    h, w = disparity.shape
+    keep = np.ones(len(boxes), bool)
+    for k, (x, y, bw, bh) in enumerate(boxes):
+        r0, r1 = max(int(y + 0.5 * bh), 0), min(int(y + bh) + 1, h)
+        c0, c1 = max(int(x), 0), min(int(x + bw) + 1, w)
+        patch = disparity[r0:r1, c0:c1]
+        patch = patch[np.isfinite(patch)]
+        if patch.size:
+            keep[k] = float(np.median(patch)) < max_disparity_px
+    return keep
+
+
 def default_lifter(refiner: DisparityRefiner | None) -> LifterConfig:
     """The lifter settings to use with ``refiner``'s disparity: :class:`LifterConfig` with the
     refiner's edge offsets (the defaults without a refiner)."""
@@ -119,13 +183,21 @@ class DisparityRefiner:
     Args:
         path: the ONNX file (default: the shipped ``lunarnav_ml/weights/disparity_refiner.onnx``).
         threads: onnxruntime intra-op threads.
+        max_disparity_px: refine only the boxes :func:`gated_boxes` passes (None: every box);
+            default: the file's ``lunarnav.max_disparity_px`` (none when absent).
+        passes: times the map is refined, the right image warped anew by the last map each
+            time; default: the file's ``lunarnav.passes`` (1 when absent).
+        Set either one apart from the file only to calibrate new edge offsets for it
+        (``benchmarks/calibrate_rim_offset.py``): the file's offsets were fitted with its own.
 
     Raises:
         InputError: missing, corrupt or foreign file (no ``lunarnav.kind = disparity_refiner``),
-            or inputs / outputs other than the ones the trainer exports.
+            inputs / outputs other than the ones the trainer exports, or bad settings.
     """
 
-    def __init__(self, path: str | os.PathLike | None = None, threads: int = 1) -> None:
+    def __init__(self, path: str | os.PathLike | None = None, threads: int = 1, *,
+                 max_disparity_px: float | None | str = "file",
+                 passes: int | None = None) -> None:
         from lunarnav_ml.runtime.session import load_session
 
         self.path = Path(path) if path is not None else DEFAULT_REFINER
@@ -142,6 +214,11 @@ class DisparityRefiner:
             raise InputError(f"{self.path}: metadata lunarnav.receptive_px missing or not an "
                              "integer") from None
         self.edge_offsets = _edge_offsets(props.get("lunarnav.edge_offsets"), self.path)
+        file_gate = _gate_setting(props.get("lunarnav.max_disparity_px"), self.path)
+        file_passes = _passes_setting(props.get("lunarnav.passes"), self.path)
+        self.max_disparity_px = file_gate if max_disparity_px == "file" else max_disparity_px
+        self.passes = file_passes if passes is None else passes
+        check_settings(self.max_disparity_px, self.passes)
         ins = {i.name: i.shape for i in self.session.get_inputs()}
         outs = {o.name for o in self.session.get_outputs()}
         if FEATURES_NAME not in ins or len(ins[FEATURES_NAME]) != 4 or DELTA_NAME not in outs:
@@ -170,8 +247,9 @@ class DisparityRefiner:
             disparity: left-reference disparity, px; NaN invalid (SGBM's band: rows outside it
                 are NaN and stay NaN).
             boxes_xywh: crater boxes, px; only their regions (:func:`refine_regions`) are
-                refined (the rest of the map is returned as it was). None: every row that
-                holds a valid pixel.
+                refined (the rest of the map is returned as it was), and with a gate only
+                those of the boxes :func:`gated_boxes` passes. None: every row that holds a
+                valid pixel.
 
         Raises:
             InputError: images that are not (H, W) uint8 of the disparity's shape.
@@ -192,16 +270,21 @@ class DisparityRefiner:
         if boxes_xywh is None:
             regions = [(a, b, 0, disp.shape[1])]
         else:
-            regions = refine_regions(boxes_xywh, disp.shape)
-        warped = warp_right(right, disp)
+            boxes = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
+            regions = refine_regions(boxes[gated_boxes(disp, boxes, self.max_disparity_px)],
+                                     disp.shape)
         m, w = self.receptive_px, disp.shape[1]
-        for r0, r1, c0, c1 in regions:
-            r0, r1 = max(r0, a), min(r1, b)
-            if r1 <= r0:
-                continue
-            pr0, pr1, pc0, pc1 = max(r0 - m, a), min(r1 + m, b), max(c0 - m, 0), min(c1 + m, w)
-            delta = self.correction(left[pr0:pr1, pc0:pc1], warped[pr0:pr1, pc0:pc1],
-                                    disp[pr0:pr1, pc0:pc1])
-            inner = (slice(r0 - pr0, r1 - pr0), slice(c0 - pc0, c1 - pc0))
-            out[r0:r1, c0:c1] = disp[r0:r1, c0:c1] + delta[inner]
+        for _ in range(self.passes):
+            src = out.copy()
+            warped = warp_right(right, src)
+            for r0, r1, c0, c1 in regions:
+                r0, r1 = max(r0, a), min(r1, b)
+                if r1 <= r0:
+                    continue
+                pr0, pr1 = max(r0 - m, a), min(r1 + m, b)
+                pc0, pc1 = max(c0 - m, 0), min(c1 + m, w)
+                delta = self.correction(left[pr0:pr1, pc0:pc1], warped[pr0:pr1, pc0:pc1],
+                                        src[pr0:pr1, pc0:pc1])
+                inner = (slice(r0 - pr0, r1 - pr0), slice(c0 - pc0, c1 - pc0))
+                out[r0:r1, c0:c1] = src[r0:r1, c0:c1] + delta[inner]
         return out

@@ -137,7 +137,9 @@ def geometry_report(
                            "detections": None if detections is None else "coco_results",
                            "score_threshold": score_threshold, "min_diameter_m": min_diameter_m,
                            "box_jitter": box_jitter, "seed": seed, "n_images": len(images),
-                           "refiner": None if refiner is None else str(refiner.path)}
+                           "refiner": None if refiner is None else str(refiner.path),
+                           "refiner_max_disparity_px": getattr(refiner, "max_disparity_px", None),
+                           "refiner_passes": getattr(refiner, "passes", None)}
     _write_outputs(Path(out_dir), metrics, rows, plots)
     return metrics
 

@@ -298,22 +298,29 @@ def _save(model: Any, props: dict[str, str], path: str | Path) -> Path:
     return Path(path)
 
 
-def stamp_edge_offsets(path: str | Path, terms: dict[str, float]) -> Path:
+def stamp_edge_offsets(path: str | Path, terms: dict[str, float],
+                       max_disparity_px: float | None = None, passes: int = 1) -> Path:
     """Write ``terms`` (:class:`~lunarnav_ml.geometry.lifter.LifterConfig` edge-offset fields)
-    into a refiner file's ``lunarnav.edge_offsets``, replacing any there, atomically.
+    into a refiner file's ``lunarnav.edge_offsets``, replacing any there, with the gate and
+    pass count they were fitted under (``lunarnav.max_disparity_px``, ``lunarnav.passes``),
+    atomically.
 
     Raises:
-        InputError: the file is not a refiner (:class:`DisparityRefiner` checks), or a term is
-            not an edge-offset field or not finite.
+        InputError: the file is not a refiner (:class:`DisparityRefiner` checks), a term is
+            not an edge-offset field or not finite, or bad settings.
     """
     import onnx
 
-    from lunarnav_ml.geometry.refine import DisparityRefiner, _edge_offsets
+    from lunarnav_ml.geometry.refine import DisparityRefiner, _edge_offsets, check_settings
 
     DisparityRefiner(path)  # a refiner, loadable
     text = json.dumps(terms)
     _edge_offsets(text, Path(path))
-    return _save(onnx.load(str(path)), {"lunarnav.edge_offsets": text}, path)
+    check_settings(max_disparity_px, passes)
+    props = {"lunarnav.edge_offsets": text, "lunarnav.passes": str(passes),
+             "lunarnav.max_disparity_px": "none" if max_disparity_px is None
+             else repr(float(max_disparity_px))}
+    return _save(onnx.load(str(path)), props, path)
 
 
 def run(datasets: Sequence[str | Path], out: str | Path, config: RefinerConfig,

@@ -13,6 +13,7 @@ from lunarnav_ml.geometry.lifter import LifterConfig
 from lunarnav_ml.geometry.refine import (
     DEFAULT_REFINER,
     DisparityRefiner,
+    gated_boxes,
     refine_regions,
     refiner_features,
     warp_right,
@@ -58,6 +59,13 @@ def test_features_channels():
     assert f[0, 4, 0, 0] == 0.0 and f[0, 4, 1, 1] == 1.0
 
 
+def _shifted_pair(shift=6, seed=1):
+    tex = _texture(160, 260, seed=seed)  # right(u - shift) = left(u)
+    left = tex[:, 30:250].round().astype(np.uint8)
+    right = tex[:, 30 + shift:250 + shift].round().astype(np.uint8)
+    return left, right
+
+
 @pytest.fixture(scope="module")
 def shipped():
     return DisparityRefiner()
@@ -65,9 +73,7 @@ def shipped():
 
 def test_shipped_refiner_regions_equal_the_whole_band(shipped):
     rng = np.random.default_rng(1)
-    tex = _texture(160, 260, seed=1)  # right(u - 6) = left(u)
-    left = tex[:, 30:250].round().astype(np.uint8)
-    right = tex[:, 36:256].round().astype(np.uint8)
+    left, right = _shifted_pair()
     d = np.full(left.shape, np.nan, np.float32)
     d[20:150] = 6.0 + rng.normal(0, 0.3, (130, left.shape[1]))
     d[60:64, 100:120] = np.nan
@@ -83,6 +89,50 @@ def test_shipped_refiner_regions_equal_the_whole_band(shipped):
     np.testing.assert_allclose(part[inside & fin], whole[inside & fin], atol=1e-5)
     assert np.array_equal(part[~inside & fin], d[~inside & fin])  # the rest as it was
     assert np.abs(whole - d)[fin].max() > 1e-3  # the net does change the map
+
+
+def test_gated_boxes():
+    d = np.full((100, 200), 8.0, np.float32)
+    d[:, 100:] = 20.0
+    d[60:, 170:] = np.nan
+    boxes = np.array([[10.0, 20.0, 40.0, 30.0],  # disparity 8
+                      [120.0, 20.0, 40.0, 30.0],  # 20
+                      [172.0, 70.0, 20.0, 20.0],  # no valid pixel in its lower half
+                      [80.0, 20.0, 40.0, 30.0]])  # half 8, half 20: median on the line
+    assert gated_boxes(d, boxes, None).tolist() == [True] * 4
+    assert gated_boxes(d, boxes, 16.0).tolist() == [True, False, True, False]
+    assert gated_boxes(d, boxes, 25.0).tolist() == [True, True, True, True]
+    d[35:, 10:51] = 30.0  # the box's lower half decides, not its upper
+    assert gated_boxes(d, boxes[:1], 16.0).tolist() == [False]
+
+
+def test_gate_and_passes(shipped):
+    left, right = _shifted_pair()
+    rng = np.random.default_rng(3)
+    d = np.full(left.shape, np.nan, np.float32)
+    d[20:150] = 6.0 + rng.normal(0, 0.3, (130, left.shape[1]))
+    d[20:150, 120:] += 12.0  # a nearer right half (its matches wrong, but the gate reads d)
+    boxes = np.array([[30.0, 70.0, 50.0, 30.0], [150.0, 60.0, 40.0, 40.0]])
+    one = shipped.refine(left, right, d, boxes)
+    gated = DisparityRefiner(max_disparity_px=12.0)
+    assert gated.passes == shipped.passes == 1
+    part = gated.refine(left, right, d, boxes)
+    far_box = np.zeros(d.shape, bool)  # the far box's region is refined, the near one's not
+    for r0, r1, c0, c1 in refine_regions(boxes[:1], d.shape):
+        far_box[r0:r1, c0:c1] = True
+    fin = np.isfinite(d)
+    np.testing.assert_allclose(part[far_box & fin], one[far_box & fin], atol=1e-5)
+    assert np.array_equal(part[~far_box & fin], d[~far_box & fin])
+    assert not np.array_equal(one[~far_box & fin], d[~far_box & fin])
+    twice = DisparityRefiner(passes=2).refine(left, right, d, boxes)
+    np.testing.assert_allclose(twice, shipped.refine(left, right, one, boxes), atol=1e-5)
+    assert np.nanmax(np.abs(twice - one)) > 1e-3
+    assert np.array_equal(np.isnan(twice), np.isnan(d))
+    for kwargs, field in (({"max_disparity_px": 0.0}, "max_disparity_px"),
+                          ({"max_disparity_px": "16"}, "max_disparity_px"),
+                          ({"passes": 0}, "passes"), ({"passes": 1.5}, "passes")):
+        with pytest.raises(InputError, match=field):
+            DisparityRefiner(**kwargs)
 
 
 def test_shipped_refiner_metadata(shipped):
@@ -123,6 +173,10 @@ def test_refiner_file_errors(tmp_path):
     path = _export(tmp_path, "offsets.onnx", **{"lunarnav.edge_offsets": '{"rim_offset": "x"}'})
     with pytest.raises(InputError, match="offsets.onnx: metadata lunarnav.edge_offsets"):
         DisparityRefiner(path)
+    for key, value in (("lunarnav.max_disparity_px", "-3"), ("lunarnav.passes", "two")):
+        path = _export(tmp_path, "settings.onnx", **{key: value})
+        with pytest.raises(InputError, match=f"settings.onnx: metadata {key}"):
+            DisparityRefiner(path)
     path = _export(tmp_path, "fine.onnx", **{"lunarnav.edge_offsets": '{"box_rim_offset": 0.01}'})
     assert DisparityRefiner(path).lifter_config().box_rim_offset == 0.01
 
@@ -249,10 +303,17 @@ def test_stamp_edge_offsets(tmp_path):
     stamp_edge_offsets(path, {"box_rim_offset_m": -0.03, "box_rim_offset_view": -0.1})
     ref = DisparityRefiner(path)
     assert ref.edge_offsets == {"box_rim_offset_m": -0.03, "box_rim_offset_view": -0.1}
+    assert ref.max_disparity_px is None and ref.passes == 1
+    stamp_edge_offsets(path, {"box_rim_offset": 0.01}, max_disparity_px=16, passes=2)
+    ref = DisparityRefiner(path)
+    assert (ref.max_disparity_px, ref.passes) == (16.0, 2)
+    assert DisparityRefiner(path, max_disparity_px=None, passes=1).max_disparity_px is None
     assert ref.receptive_px == RefinerNet(4, (1,)).receptive_px  # the rest of the metadata kept
     before = path.read_bytes()
     with pytest.raises(InputError, match="lunarnav.edge_offsets"):
         stamp_edge_offsets(path, {"ground_rows": 3.0})
     with pytest.raises(InputError, match="lunarnav.edge_offsets"):
         stamp_edge_offsets(path, {"box_rim_offset": float("nan")})
+    with pytest.raises(InputError, match="passes"):
+        stamp_edge_offsets(path, {"box_rim_offset": 0.01}, passes=0)
     assert path.read_bytes() == before
