@@ -115,6 +115,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--channels", type=int, default=None, help="width of the net (default 32)")
     p.add_argument("--seed", type=int, default=None,
                    help="seed of the crops, the split and the weights (default 65)")
+    p.add_argument("--max-disparity", type=float, default=None, dest="max_disparity_px",
+                   help="train on the crops whose median SGBM disparity is below this (px), "
+                        "and gate the refiner there (refine only boxes that read below it)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train_refiner)
@@ -127,7 +130,8 @@ def run_train_refiner(args: argparse.Namespace) -> int:
     from lunarnav_ml.training.refiner import RefinerConfig, run
     from lunarnav_ml.utils.atomic import check_destination
 
-    given = {k: getattr(args, k) for k in ("channels", "steps", "batch", "lr", "seed")}
+    given = {k: getattr(args, k)
+             for k in ("channels", "steps", "batch", "lr", "seed", "max_disparity_px")}
     config = RefinerConfig(**{k: v for k, v in given.items() if v is not None})
     check_destination(args.out)
     if args.threads is not None:

@@ -66,6 +66,7 @@ class RefinerConfig:
     lr: float = 1e-3
     val_fraction: float = 0.05
     seed: int = 65
+    max_disparity_px: float | None = None  # keep crops whose median SGBM disparity is below
 
     def __post_init__(self) -> None:
         for name in ("channels", "steps", "batch"):
@@ -76,6 +77,11 @@ class RefinerConfig:
             raise ConfigError(f"dilations: expected positive integers, got {self.dilations!r}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ConfigError(f"lr: expected a positive number, got {self.lr!r}")
+        if self.max_disparity_px is not None and not (
+                isinstance(self.max_disparity_px, int | float)
+                and math.isfinite(self.max_disparity_px) and self.max_disparity_px > 0):
+            raise ConfigError(f"max_disparity_px: expected a positive number, got "
+                              f"{self.max_disparity_px!r}")
         if not 0.0 < self.val_fraction < 0.5:
             raise ConfigError(f"val_fraction: expected a fraction in (0, 0.5), got "
                               f"{self.val_fraction!r}")
@@ -154,8 +160,10 @@ def evaluated_craters(dataset: str | Path) -> tuple[Path, dict, dict[int, list[d
 
 
 def build_crops(datasets: Sequence[str | Path], seed: int = 65, progress: bool = True,
-                stereo: Callable | None = None) -> Crops:
-    """Cut training crops from rendered stereo sets (module docstring).
+                stereo: Callable | None = None, max_disparity_px: float | None = None) -> Crops:
+    """Cut training crops from rendered stereo sets (module docstring); with
+    ``max_disparity_px`` only those whose median SGBM disparity is below it (the far craters a
+    refiner gated at that disparity refines; the crops drawn are the same either way).
 
     Raises:
         InputError: a set without annotations, stereo pairs or rendered disparity; an image
@@ -193,6 +201,8 @@ def build_crops(datasets: Sequence[str | Path], seed: int = 65, progress: bool =
                                  max(band[0], band[1] - CROP)))
                 win = (slice(v0, v0 + CROP), slice(u0, u0 + CROP))
                 if v0 + CROP > h or np.isfinite(sgbm[win]).mean() < 0.3:
+                    continue
+                if max_disparity_px is not None and np.nanmedian(sgbm[win]) >= max_disparity_px:
                     continue
                 for key, arr in (("left", left), ("warped", warped), ("sgbm", sgbm),
                                  ("rendered", rendered)):
@@ -326,10 +336,12 @@ def stamp_edge_offsets(path: str | Path, terms: dict[str, float],
 def run(datasets: Sequence[str | Path], out: str | Path, config: RefinerConfig,
         progress: bool = True) -> RefinerReport:
     """Crops, training and export: what ``lunarnav train-refiner`` does."""
-    crops = build_crops(datasets, config.seed, progress)
+    crops = build_crops(datasets, config.seed, progress, max_disparity_px=config.max_disparity_px)
     print(f"{len(crops)} crops from {len(datasets)} set(s)", flush=True)
     net, report = train_refiner(crops, config, log=(lambda s: print(s, flush=True)))
     meta = {"lunarnav.training": json.dumps({"datasets": [str(d) for d in datasets],
                                              **asdict(config), **asdict(report)})}
+    if config.max_disparity_px is not None:  # trained for the far craters: gated likewise
+        meta["lunarnav.max_disparity_px"] = repr(float(config.max_disparity_px))
     export_refiner(net, out, meta)
     return report

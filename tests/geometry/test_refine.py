@@ -212,6 +212,11 @@ def test_training_fits_crops_and_is_seeded(rendered_set):
     assert len(crops) >= 8 and crops.left.shape[1:] == (64, 64)
     again = build_crops([rendered_set], seed=3, progress=False)
     assert np.array_equal(crops.left, again.left)
+    medians = np.nanmedian(crops.sgbm.reshape(len(crops), -1), axis=1)
+    cut = float(np.median(medians))
+    far = build_crops([rendered_set], seed=3, progress=False, max_disparity_px=cut)
+    assert 0 < len(far) < len(crops)
+    assert np.array_equal(far.left, crops.left[medians < cut])  # the same crops, filtered
     cfg = RefinerConfig(channels=16, dilations=(1, 2), steps=300, batch=4, lr=3e-3,
                         val_fraction=0.2, seed=3)
     net, report = train_refiner(crops, cfg, log=None)
@@ -233,6 +238,8 @@ def test_training_config_checks():
         RefinerConfig(steps=0)
     with pytest.raises(ConfigError, match="val_fraction"):
         RefinerConfig(val_fraction=0.7)
+    with pytest.raises(ConfigError, match="max_disparity_px"):
+        RefinerConfig(max_disparity_px=-1.0)
 
 
 def test_cli_train_refiner_then_eval(rendered_set, tmp_path, capsys):
@@ -241,6 +248,12 @@ def test_cli_train_refiner_then_eval(rendered_set, tmp_path, capsys):
                  "--batch", "4", "--channels", "4", "--quiet", "--threads", "1"]) == 0
     assert "held-out L1" in capsys.readouterr().out
     assert DisparityRefiner(out).receptive_px > 0
+    assert DisparityRefiner(out).max_disparity_px is None
+    gated = tmp_path / "gated.onnx"
+    assert main(["train-refiner", str(rendered_set), "--out", str(gated), "--steps", "2",
+                 "--batch", "2", "--channels", "4", "--quiet", "--threads", "1",
+                 "--max-disparity", "400"]) == 0
+    assert DisparityRefiner(gated).max_disparity_px == 400.0
     assert main(["eval", "--task", "geometry", "--gt", str(rendered_set), "--refiner", str(out),
                  "--threads", "1", "--out", str(tmp_path / "geo"), "--no-progress"]) == 0
     metrics = json.loads((tmp_path / "geo" / "geometry_metrics.json").read_text())
