@@ -106,16 +106,17 @@ def test_gated_boxes():
     assert gated_boxes(d, boxes[:1], 16.0).tolist() == [False]
 
 
-def test_gate_and_passes(shipped):
+def test_gate_and_passes():
     left, right = _shifted_pair()
     rng = np.random.default_rng(3)
     d = np.full(left.shape, np.nan, np.float32)
     d[20:150] = 6.0 + rng.normal(0, 0.3, (130, left.shape[1]))
     d[20:150, 120:] += 12.0  # a nearer right half (its matches wrong, but the gate reads d)
     boxes = np.array([[30.0, 70.0, 50.0, 30.0], [150.0, 60.0, 40.0, 40.0]])
-    one = shipped.refine(left, right, d, boxes)
+    ungated = DisparityRefiner(max_disparity_px=None)
+    one = ungated.refine(left, right, d, boxes)
     gated = DisparityRefiner(max_disparity_px=12.0)
-    assert gated.passes == shipped.passes == 1
+    assert gated.passes == ungated.passes == 1
     part = gated.refine(left, right, d, boxes)
     far_box = np.zeros(d.shape, bool)  # the far box's region is refined, the near one's not
     for r0, r1, c0, c1 in refine_regions(boxes[:1], d.shape):
@@ -124,8 +125,8 @@ def test_gate_and_passes(shipped):
     np.testing.assert_allclose(part[far_box & fin], one[far_box & fin], atol=1e-5)
     assert np.array_equal(part[~far_box & fin], d[~far_box & fin])
     assert not np.array_equal(one[~far_box & fin], d[~far_box & fin])
-    twice = DisparityRefiner(passes=2).refine(left, right, d, boxes)
-    np.testing.assert_allclose(twice, shipped.refine(left, right, one, boxes), atol=1e-5)
+    twice = DisparityRefiner(max_disparity_px=None, passes=2).refine(left, right, d, boxes)
+    np.testing.assert_allclose(twice, ungated.refine(left, right, one, boxes), atol=1e-5)
     assert np.nanmax(np.abs(twice - one)) > 1e-3
     assert np.array_equal(np.isnan(twice), np.isnan(d))
     for kwargs, field in (({"max_disparity_px": 0.0}, "max_disparity_px"),
@@ -137,6 +138,7 @@ def test_gate_and_passes(shipped):
 
 def test_shipped_refiner_metadata(shipped):
     assert shipped.path == DEFAULT_REFINER and shipped.receptive_px == RefinerNet().receptive_px
+    assert (shipped.max_disparity_px, shipped.passes) == (16.0, 1)  # the gate since session 66
     cfg = shipped.lifter_config(LifterConfig(max_rim_residual_rel=0.2))
     assert cfg.max_rim_residual_rel == 0.2
     for key, value in shipped.edge_offsets.items():
