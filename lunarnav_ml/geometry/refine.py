@@ -231,6 +231,11 @@ class DisparityRefiner:
         refiner's disparity, where the file carries them."""
         return replace(base if base is not None else LifterConfig(), **self.edge_offsets)
 
+    def refined_boxes(self, disparity: np.ndarray, boxes_xywh: np.ndarray) -> np.ndarray:
+        """Which of the boxes :meth:`refine` corrects on SGBM's ``disparity`` (its gate,
+        :func:`gated_boxes`). Shape: (K, 4) -> (K,) bool."""
+        return gated_boxes(disparity, boxes_xywh, self.max_disparity_px)
+
     def correction(self, left: np.ndarray, warped: np.ndarray, disparity: np.ndarray
                    ) -> np.ndarray:
         """The net's per-pixel correction, px, for one (H, W) crop (NaN where ``disparity`` is)."""
@@ -271,8 +276,7 @@ class DisparityRefiner:
             regions = [(a, b, 0, disp.shape[1])]
         else:
             boxes = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
-            regions = refine_regions(boxes[gated_boxes(disp, boxes, self.max_disparity_px)],
-                                     disp.shape)
+            regions = refine_regions(boxes[self.refined_boxes(disp, boxes)], disp.shape)
         m, w = self.receptive_px, disp.shape[1]
         for _ in range(self.passes):
             src = out.copy()

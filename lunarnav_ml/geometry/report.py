@@ -207,6 +207,7 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
     used = [b for b in boxes if b is not None]
     left = right = disp = None
     timing = {}
+    refined = [False] * len(boxes)
     if used:  # with detections that missed every crater there is nothing to lift
         left = read_gray(root, im["file_name"])
         t0 = time.perf_counter()
@@ -220,13 +221,15 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
             disp = (cfg.stereo or SGBMStereo.for_width(left.shape[1]))(left, right, rows).disparity
             t_sgbm = time.perf_counter()
             if cfg.refiner is not None:
+                mask = iter(cfg.refiner.refined_boxes(disp, coco).tolist())
+                refined = [b is not None and next(mask) for b in boxes]
                 disp = cfg.refiner.refine(left, right, disp, coco)
                 timing["refine_s"] = time.perf_counter() - t_sgbm
         timing["stereo_s"] = time.perf_counter() - t0
     rows = []
-    for ann, box in zip(anns, boxes):
+    for ann, box, fixed in zip(anns, boxes, refined):
         row = _eval_crater(left, right, disp, rig, ann, box, cfg)
-        row.update(image_id=im["id"], camera_height_m=rig.height_m, **timing,
+        row.update(image_id=im["id"], camera_height_m=rig.height_m, refined=fixed, **timing,
                    sun_zenith_deg=im.get("sun_zenith_deg"), sun_azimuth_deg=im.get("sun_azimuth_deg"))
         rows.append(row)
     return rows

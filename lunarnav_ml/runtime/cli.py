@@ -118,14 +118,15 @@ def run_localize(args: argparse.Namespace) -> int:
 
 def crater_record(crater: Any) -> dict[str, Any]:
     """One :class:`Crater3D` as JSON: box (xyxy px), score, ellipse (cx, cy, a, b, angle_deg),
-    and for a lifted crater its centre, diameter, 1-sigma horizontal error and covariance."""
+    whether the refiner corrected its disparity, and for a lifted crater its centre, diameter,
+    1-sigma horizontal error and covariance."""
     from lunarnav_ml.utils.atomic import finite_or_none
 
     out: dict[str, Any] = {
         "box": [float(v) for v in crater.box], "score": float(crater.score), "ok": crater.ok,
         "reason": crater.reason,
         "ellipse": None if crater.ellipse is None else crater.ellipse.to_array().tolist(),
-        "ellipse_quality": float(crater.ellipse_quality)}
+        "ellipse_quality": float(crater.ellipse_quality), "refined": bool(crater.refined)}
     if crater.ok:
         out.update(center_m=crater.center_m.tolist(), diameter_m=float(crater.diameter_m),
                    sigma_horizontal_m=finite_or_none(crater.lift.horizontal_sigma_m),

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -49,6 +49,8 @@ class Crater3D:
         lift: the 3D lift (rover frame), or None when it was not tried (lifting from a fitted
             ellipse that could not be fitted).
         reason: "ok", "ellipse:<why>" (``lift_from="fit"`` only) or "lift:<why>".
+        refined: whether the disparity refiner corrected the disparity around this box (False
+            without one, or where its gate left the box to SGBM).
     """
 
     box: np.ndarray
@@ -57,6 +59,7 @@ class Crater3D:
     ellipse_quality: float = 0.0
     lift: LiftResult | None = field(default=None, repr=False)
     reason: str = "ok"
+    refined: bool = False
 
     @property
     def ok(self) -> bool:
@@ -178,10 +181,12 @@ class StereoCraterLocalizer:
         xywh = np.column_stack([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]])
         # only the rows the boxes' lifts read, as the geometry evaluation matches them
         disparity = self.disparity(*pair, rows=rows_needed(xywh, left.shape[0], self.lifter))
+        refined = np.zeros(len(boxes), bool)
         if self.refiner is not None:
+            refined = self.refiner.refined_boxes(disparity, xywh)
             disparity = self.refiner.refine(*pair, disparity, xywh)
         t2 = time.perf_counter()
-        craters = [self.localize_box(pair[0], disparity, b, float(s), pair)
-                   for b, s in zip(boxes, scores)]
+        craters = [replace(self.localize_box(pair[0], disparity, b, float(s), pair),
+                           refined=bool(r)) for b, s, r in zip(boxes, scores, refined)]
         self.timing_ms.update(stereo=1e3 * (t2 - t1), craters=1e3 * (time.perf_counter() - t2))
         return craters

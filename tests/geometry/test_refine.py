@@ -260,12 +260,17 @@ def test_cli_train_refiner_then_eval(rendered_set, tmp_path, capsys):
                  "--threads", "1", "--out", str(tmp_path / "geo"), "--no-progress"]) == 0
     metrics = json.loads((tmp_path / "geo" / "geometry_metrics.json").read_text())
     assert metrics["settings"]["refiner"] == str(out) and metrics["overall"]["n"] == 1
+    rows = json.loads((tmp_path / "geo" / "geometry_craters.json").read_text())
+    assert [r["refined"] for r in rows] == [True]  # ungated: every box
     for extra, want in (([], str(DEFAULT_REFINER)), (["--no-refiner"], None),
                         (["--disparity", "rendered"], None)):  # on by default, on SGBM only
         assert main(["eval", "--task", "geometry", "--gt", str(rendered_set), *extra,
                      "--out", str(tmp_path / "g2"), "--no-progress"]) == 0
         metrics = json.loads((tmp_path / "g2" / "geometry_metrics.json").read_text())
         assert metrics["settings"]["refiner"] == want
+        rows = json.loads((tmp_path / "g2" / "geometry_craters.json").read_text())
+        if want is None:
+            assert [r["refined"] for r in rows] == [False]
 
 
 def test_cli_train_refiner_bad_input(tmp_path, rendered_set, capsys):

@@ -44,6 +44,18 @@ def test_crater_lifted_to_its_true_center(scene):
     assert np.hypot(*(c.center_m[:2] - scene.center_rover[:2])) < max(1.0, 0.25 * d)
     assert abs(c.diameter_m - d) < 0.25 * d
     assert c.ellipse is not None and 0 < c.ellipse_quality <= 1
+    assert not c.refined  # no refiner
+
+
+def test_the_refiner_gate_marks_the_craters_it_corrects(scene):
+    from lunarnav_ml.geometry.refine import DisparityRefiner
+
+    for gate, want in ((1000.0, True), (0.5, False)):
+        loc = StereoCraterLocalizer(TruthDetector(scene.box), scene.rig,
+                                    refiner=DisparityRefiner(max_disparity_px=gate))
+        craters = loc(rgb(scene.left), rgb(scene.right))
+        assert [c.refined for c in craters] == [want]
+        assert craters[0].ok, craters[0].reason
 
 
 def test_the_lifter_reads_the_crest_from_the_pair(scene):

@@ -48,6 +48,7 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     assert abs(best["diameter_m"] - d) < 0.25 * d
     assert out["sgbm"] == {"mode": "hh", "num_disparities": 80} and out["lift_from"] == "box"
     assert out["refiner"] == str(DEFAULT_REFINER)  # on by default
+    assert all(isinstance(c["refined"], bool) for c in out["craters"])
     assert np.array(best["covariance_xyzd"]).shape == (4, 4) and best["sigma_horizontal_m"] > 0
     assert cv2.imread(str(tmp_path / "overlay.jpg")).shape == (480, 640, 3)
     assert set(out["timing_ms"]) == {"detect", "stereo", "craters"}
@@ -62,6 +63,7 @@ def test_an_onnx_model_runs_through_the_onboard_runtime(pair, onnx_path, tmp_pat
                 "--out", str(tmp_path)) == 0
     out = json.loads((tmp_path / "craters3d.json").read_text())
     assert out["lift_from"] == "fit" and out["refiner"] is None
+    assert not any(c["refined"] for c in out["craters"])
     assert out["sgbm"] == {"mode": "3way", "num_disparities": 80}  # sized to 640 px
     assert all(c["ok"] == ("center_m" in c) for c in out["craters"])
     assert out["weights"] == str(onnx_path)
