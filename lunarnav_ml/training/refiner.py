@@ -41,6 +41,7 @@ from lunarnav_ml.geometry.refine import (
     FEATURES_NAME,
     KIND,
     N_FEATURES,
+    check_settings,
     refiner_features,
     warp_right,
 )
@@ -77,11 +78,10 @@ class RefinerConfig:
             raise ConfigError(f"dilations: expected positive integers, got {self.dilations!r}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ConfigError(f"lr: expected a positive number, got {self.lr!r}")
-        if self.max_disparity_px is not None and not (
-                isinstance(self.max_disparity_px, int | float)
-                and math.isfinite(self.max_disparity_px) and self.max_disparity_px > 0):
-            raise ConfigError(f"max_disparity_px: expected a positive number, got "
-                              f"{self.max_disparity_px!r}")
+        try:  # the gate the exported file will carry
+            check_settings(self.max_disparity_px, 1)
+        except InputError as err:
+            raise ConfigError(str(err)) from None
         if not 0.0 < self.val_fraction < 0.5:
             raise ConfigError(f"val_fraction: expected a fraction in (0, 0.5), got "
                               f"{self.val_fraction!r}")
@@ -321,7 +321,7 @@ def stamp_edge_offsets(path: str | Path, terms: dict[str, float],
     """
     import onnx
 
-    from lunarnav_ml.geometry.refine import DisparityRefiner, _edge_offsets, check_settings
+    from lunarnav_ml.geometry.refine import DisparityRefiner, _edge_offsets
 
     DisparityRefiner(path)  # a refiner, loadable
     text = json.dumps(terms)
