@@ -5,7 +5,8 @@ For each evaluated crater (D >= 4.5 m, not ignored) of a rendered stereo set, SG
 geometry evaluation's band, the refiner (``--refiner``, default the shipped file) corrects the
 regions around the boxes, and both are compared with the render's exact disparity where all
 three are valid and SGBM is within 4 px (a larger miss is a wrong match): mean absolute error,
-px, over the regions and over the pixels within 3 px of a depth step (the occluding rims).
+px, over the regions and over the pixels within 3 px of a depth step (the occluding rims). A
+gated refiner's regions only (the boxes it corrects; ``n_refined_boxes`` in the output).
 ``--examples`` craters 15-20 m away, the smallest first, go into ``refiner_examples.png``: the
 left crop, SGBM's and the refined error maps, and the disparity down the box's centre column.
 Use development renders, never the evaluation set:
@@ -50,16 +51,18 @@ def study(dataset: Path, refiner: DisparityRefiner, max_images: int | None) -> d
     images = [im for im in coco["images"] if by_image.get(im["id"])][:max_images]
     sums = {k: np.zeros(2) for k in ("sgbm", "refined", "sgbm_edge", "refined_edge")}
     examples = []
+    n_boxes = n_refined = 0
     for k, im in enumerate(images):
         left = read_gray(ann_path.parent, im["file_name"])
         right = read_gray(ann_path.parent, im["right_file"])
         boxes = np.array([a["bbox"] for a in by_image[im["id"]]], float)
         band = rows_needed(boxes, left.shape[0])
         sgbm = SGBMStereo.for_width(left.shape[1])(left, right, band).disparity
-        refined = refiner.refine(left, right, sgbm, boxes)
+        refined, gated = refiner.refine_boxes(left, right, sgbm, boxes)
+        n_boxes, n_refined = n_boxes + len(boxes), n_refined + int(gated.sum())
         truth = read_disparity(ann_path.parent, im).astype(np.float32)
-        inside = np.zeros(left.shape, bool)
-        for r0, r1, c0, c1 in refine_regions(boxes, left.shape):
+        inside = np.zeros(left.shape, bool)  # what the refiner corrected (its gate's boxes)
+        for r0, r1, c0, c1 in refine_regions(boxes[gated], left.shape):
             inside[r0:r1, c0:c1] = True
         keep = inside & np.isfinite(sgbm) & (truth > 0) & (np.abs(sgbm - truth) < MAX_TARGET_PX)
         edge = keep & _edges(truth)
@@ -67,15 +70,16 @@ def study(dataset: Path, refiner: DisparityRefiner, max_images: int | None) -> d
             err = np.abs(d - truth)
             sums[name] += (err[keep].sum(), keep.sum())
             sums[name + "_edge"] += (err[edge].sum(), edge.sum())
-        for a, box in zip(by_image[im["id"]], boxes, strict=True):
-            if 15.0 <= a.get("near_rim_range_m", 0.0) <= 20.0:
+        for a, box, fixed in zip(by_image[im["id"]], boxes, gated, strict=True):
+            if fixed and 15.0 <= a.get("near_rim_range_m", 0.0) <= 20.0:
                 examples.append((a["diameter_m"], a["near_rim_range_m"], box, left, sgbm,
                                  refined, truth, im["id"]))
         if k % 32 == 0:
             print(f"{k + 1}/{len(images)} images", flush=True)
     out = {name: float(s[0] / max(s[1], 1)) for name, s in sums.items()}
     out.update(n_pixels=int(sums["sgbm"][1]), n_edge_pixels=int(sums["sgbm_edge"][1]),
-               n_images=len(images), dataset=str(ann_path), refiner=str(refiner.path))
+               n_images=len(images), n_boxes=n_boxes, n_refined_boxes=n_refined,
+               dataset=str(ann_path), refiner=str(refiner.path))
     return out, sorted(examples, key=lambda e: (e[0], e[1]))
 
 

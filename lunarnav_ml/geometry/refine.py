@@ -231,11 +231,6 @@ class DisparityRefiner:
         refiner's disparity, where the file carries them."""
         return replace(base if base is not None else LifterConfig(), **self.edge_offsets)
 
-    def refined_boxes(self, disparity: np.ndarray, boxes_xywh: np.ndarray) -> np.ndarray:
-        """Which of the boxes :meth:`refine` corrects on SGBM's ``disparity`` (its gate,
-        :func:`gated_boxes`). Shape: (K, 4) -> (K,) bool."""
-        return gated_boxes(disparity, boxes_xywh, self.max_disparity_px)
-
     def correction(self, left: np.ndarray, warped: np.ndarray, disparity: np.ndarray
                    ) -> np.ndarray:
         """The net's per-pixel correction, px, for one (H, W) crop (NaN where ``disparity`` is)."""
@@ -251,10 +246,8 @@ class DisparityRefiner:
             left, right: the rectified pair, (H, W) uint8 gray.
             disparity: left-reference disparity, px; NaN invalid (SGBM's band: rows outside it
                 are NaN and stay NaN).
-            boxes_xywh: crater boxes, px; only their regions (:func:`refine_regions`) are
-                refined (the rest of the map is returned as it was), and with a gate only
-                those of the boxes :func:`gated_boxes` passes. None: every row that holds a
-                valid pixel.
+            boxes_xywh: crater boxes, px: as :meth:`refine_boxes`. None: every row that holds
+                a valid pixel.
 
         Raises:
             InputError: images that are not (H, W) uint8 of the disparity's shape.
@@ -262,21 +255,45 @@ class DisparityRefiner:
         Shape:
             disparity: (H, W); boxes_xywh: (K, 4). Returns (H, W) float32.
         """
+        if boxes_xywh is not None:
+            return self.refine_boxes(left, right, disparity, boxes_xywh)[0]
+        return self._refine(left, right, self._checked(left, right, disparity), None)
+
+    def refine_boxes(self, left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
+                     boxes_xywh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`refine` around crater boxes: only their regions (:func:`refine_regions`) are
+        refined, the rest of the map is returned as it was, and with a gate only the regions
+        of the boxes :func:`gated_boxes` passes on SGBM's ``disparity``.
+
+        Returns:
+            The refined (H, W) float32 map and (K,) bool: which boxes were refined.
+        """
+        disp = self._checked(left, right, disparity)
+        boxes = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
+        refined = gated_boxes(disp, boxes, self.max_disparity_px)
+        return self._refine(left, right, disp, refine_regions(boxes[refined], disp.shape)), refined
+
+    @staticmethod
+    def _checked(left: np.ndarray, right: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+        """``disparity`` as float32, once ``left`` and ``right`` are uint8 gray of its shape."""
         disp = np.asarray(disparity, dtype=np.float32)
         for name, img in (("left", left), ("right", right)):
             if img.ndim != 2 or img.dtype != np.uint8 or img.shape != disp.shape:
                 raise InputError(f"{name}: expected a uint8 gray image of shape {disp.shape}, "
                                  f"got {img.dtype} {img.shape}")
+        return disp
+
+    def _refine(self, left: np.ndarray, right: np.ndarray, disp: np.ndarray,
+                regions: list[tuple[int, ...]] | None) -> np.ndarray:
+        """``disp`` refined in ``regions`` (None: its whole band), ``passes`` times, each region
+        read with the receptive radius around it."""
         out = disp.copy()
         rows = np.flatnonzero(np.isfinite(disp).any(axis=1))
         if not len(rows):
             return out
         a, b = int(rows[0]), int(rows[-1]) + 1
-        if boxes_xywh is None:
+        if regions is None:
             regions = [(a, b, 0, disp.shape[1])]
-        else:
-            boxes = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
-            regions = refine_regions(boxes[self.refined_boxes(disp, boxes)], disp.shape)
         m, w = self.receptive_px, disp.shape[1]
         for _ in range(self.passes):
             src = out.copy()

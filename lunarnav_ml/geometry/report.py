@@ -221,9 +221,9 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
             disp = (cfg.stereo or SGBMStereo.for_width(left.shape[1]))(left, right, rows).disparity
             t_sgbm = time.perf_counter()
             if cfg.refiner is not None:
-                mask = iter(cfg.refiner.refined_boxes(disp, coco).tolist())
-                refined = [b is not None and next(mask) for b in boxes]
-                disp = cfg.refiner.refine(left, right, disp, coco)
+                disp, mask = cfg.refiner.refine_boxes(left, right, disp, coco)
+                gated = iter(mask.tolist())  # one per used box, in order
+                refined = [b is not None and next(gated) for b in boxes]
                 timing["refine_s"] = time.perf_counter() - t_sgbm
         timing["stereo_s"] = time.perf_counter() - t0
     rows = []

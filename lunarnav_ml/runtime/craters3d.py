@@ -183,8 +183,7 @@ class StereoCraterLocalizer:
         disparity = self.disparity(*pair, rows=rows_needed(xywh, left.shape[0], self.lifter))
         refined = np.zeros(len(boxes), bool)
         if self.refiner is not None:
-            refined = self.refiner.refined_boxes(disparity, xywh)
-            disparity = self.refiner.refine(*pair, disparity, xywh)
+            disparity, refined = self.refiner.refine_boxes(*pair, disparity, xywh)
         t2 = time.perf_counter()
         craters = [replace(self.localize_box(pair[0], disparity, b, float(s), pair),
                            refined=bool(r)) for b, s, r in zip(boxes, scores, refined)]

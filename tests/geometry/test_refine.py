@@ -308,6 +308,7 @@ def test_refiner_study_script(rendered_set, tmp_path, capsys):
     metrics = json.loads((tmp_path / "out" / "refiner_study.json").read_text())
     assert metrics["n_pixels"] > 1000 and metrics["sgbm"] > 0 and metrics["refined"] > 0
     assert metrics["n_edge_pixels"] <= metrics["n_pixels"]
+    assert metrics["n_refined_boxes"] == metrics["n_boxes"] == 1
     assert (tmp_path / "out" / "refiner_examples.png").stat().st_size > 10_000
     assert "mean |error| px in the refined regions" in capsys.readouterr().out
     (ds / "disparity/0.npy").write_bytes(b"junk")
