@@ -133,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--min-cell", type=int, default=5,
                    help="lifts a (diameter, range band) cell needs to count")
     args = p.parse_args(argv)
+    if args.refiner is None and (args.max_disparity is not None or args.passes != 1):
+        p.error("--max-disparity and --passes set a refiner's gate and passes: give --refiner")
     match = {} if args.crest_match is None else {"crest_match": args.crest_match == "on"}
     zero = LifterConfig(rim_offset=0.0, rim_offset_m=0.0, rim_offset_view=0.0,
                         box_rim_offset=0.0, box_rim_offset_m=0.0, box_rim_offset_view=0.0,

@@ -125,6 +125,13 @@ def _gate_setting(text: str | None, path: Path) -> float | None:
     return value
 
 
+def gate_metadata(max_disparity_px: float | None) -> dict[str, str]:
+    """The ``lunarnav.max_disparity_px`` entry a refiner file carries for this gate (read back
+    by :class:`DisparityRefiner`)."""
+    text = "none" if max_disparity_px is None else repr(float(max_disparity_px))
+    return {"lunarnav.max_disparity_px": text}
+
+
 def _passes_setting(text: str | None, path: Path) -> int:
     """The ``lunarnav.passes`` of a refiner file (1 when absent)."""
     if text is None:

@@ -42,6 +42,7 @@ from lunarnav_ml.geometry.refine import (
     KIND,
     N_FEATURES,
     check_settings,
+    gate_metadata,
     refiner_features,
     warp_right,
 )
@@ -328,8 +329,7 @@ def stamp_edge_offsets(path: str | Path, terms: dict[str, float],
     _edge_offsets(text, Path(path))
     check_settings(max_disparity_px, passes)
     props = {"lunarnav.edge_offsets": text, "lunarnav.passes": str(passes),
-             "lunarnav.max_disparity_px": "none" if max_disparity_px is None
-             else repr(float(max_disparity_px))}
+             **gate_metadata(max_disparity_px)}
     return _save(onnx.load(str(path)), props, path)
 
 
@@ -342,6 +342,6 @@ def run(datasets: Sequence[str | Path], out: str | Path, config: RefinerConfig,
     meta = {"lunarnav.training": json.dumps({"datasets": [str(d) for d in datasets],
                                              **asdict(config), **asdict(report)})}
     if config.max_disparity_px is not None:  # trained for the far craters: gated likewise
-        meta["lunarnav.max_disparity_px"] = repr(float(config.max_disparity_px))
+        meta.update(gate_metadata(config.max_disparity_px))
     export_refiner(net, out, meta)
     return report

@@ -101,6 +101,15 @@ def test_the_terms_are_written_into_a_refiner(tmp_path, capsys):
             if key in offsets:
                 assert offsets[key] == pytest.approx(value, abs=1e-5)
     assert got["refiner"] == str(refiner) and "written into" in capsys.readouterr().out
+    assert (DisparityRefiner(refiner).max_disparity_px, DisparityRefiner(refiner).passes) == (
+        None, 1)
+    assert cal.main(["unused.json", "--out", str(tmp_path), "--rows-only", "--refiner",
+                     str(refiner), "--max-disparity", "12", "--passes", "2"]) == 0
+    again = DisparityRefiner(refiner)  # the gate and passes the terms were fitted under
+    assert (again.max_disparity_px, again.passes, again.edge_offsets) == (12.0, 2, offsets)
+    with pytest.raises(SystemExit):  # a gate without a refiner to write it into
+        cal.main(["unused.json", "--out", str(tmp_path), "--rows-only", "--max-disparity", "12"])
+    assert "give --refiner" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("bad, field", [({"near_rim_range_m": None}, "near_rim_range_m"),
