@@ -60,7 +60,8 @@ def window(box: np.ndarray, disp: np.ndarray, half_width: int) -> tuple[int, int
 
 
 def cache_set(dataset: Path, out: Path, refiner: DisparityRefiner | None,
-              ellipse_source: str, near_range: tuple[float, float]) -> int:
+              ellipse_source: str, near_range: tuple[float, float], disparity: str = "sgbm"
+              ) -> int:
     """Run the report on ``dataset`` and write its lifted craters' windows; their count."""
     kept: list[dict[str, Any]] = []
     step = report._eval_crater
@@ -84,7 +85,7 @@ def cache_set(dataset: Path, out: Path, refiner: DisparityRefiner | None,
     report._eval_crater = capture
     try:
         report.geometry_report(dataset, out / dataset.name, refiner=refiner,
-                               ellipse_source=ellipse_source, plots=False)
+                               ellipse_source=ellipse_source, disparity=disparity, plots=False)
     finally:
         report._eval_crater = step
     # (the report adds each image's fields to the rows kept here after the step: same objects)
@@ -156,6 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--refiner", default="default",
                    help="the refiner's ONNX file; 'default': the shipped one; 'none': SGBM only")
     c.add_argument("--ellipse-source", default="box", choices=report.ELLIPSE_SOURCES)
+    c.add_argument("--disparity", default="sgbm", choices=report.DISPARITY_SOURCES,
+                   help="'rendered': each image's own disparity file (no refiner)")
     c.add_argument("--range", type=float, nargs=2, default=(15.0, 20.0), metavar=("LO", "HI"),
                    help="near-rim ranges kept, m")
     lift = sub.add_parser("lift", help="re-lift the cached craters and print the figures")
@@ -165,11 +168,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         if args.command == "cache":
-            refiner = (None if args.refiner == "none" else
+            refiner = (None if args.refiner == "none" or args.disparity == "rendered" else
                        DisparityRefiner(None if args.refiner == "default" else args.refiner))
             args.out.mkdir(parents=True, exist_ok=True)
             for s in args.sets:
-                n = cache_set(s, args.out, refiner, args.ellipse_source, tuple(args.range))
+                n = cache_set(s, args.out, refiner, args.ellipse_source, tuple(args.range),
+                              args.disparity)
                 print(f"{s.name}: {n} craters cached", flush=True)
             return 0
         overrides = _lifter_settings(args.lifter)

@@ -7,10 +7,13 @@ from lunarnav_ml.errors import InputError
 from lunarnav_ml.geometry.ellipse import Ellipse, fit_crater_ellipse
 from lunarnav_ml.geometry.lifter import (
     LifterConfig,
+    LiftResult,
     _crest_row,
     _lowest_step,
     _match_crest,
+    _mean_lift,
     _rim_disparities,
+    _rules_agree,
     _tries,
     lift_crater,
     rows_needed,
@@ -378,7 +381,10 @@ def test_the_lowest_step_rule_finds_a_crest_beyond_the_searches_cap(crater_scene
     res = lift_crater(low, disp, sc.rig, LifterConfig(**gate))
     assert res.ok and res.crest_step == "lowest" and res.crest_search_px == 6
     np.testing.assert_allclose(res.center_m[:2], sc.center_rover[:2], atol=0.1)
-    assert lift_crater(e, disp, sc.rig, LifterConfig(**gate)).crest_step == "largest"
+    # on the crest both rules find it: their mean, or with the mean off the first rule's lift
+    assert lift_crater(e, disp, sc.rig, LifterConfig(**gate)).crest_step == "both"
+    first = LifterConfig(mean_rules_within=None, **gate)
+    assert lift_crater(e, disp, sc.rig, first).crest_step == "largest"
 
 
 def test_the_lowest_step_is_taken_not_the_largest():
@@ -457,6 +463,38 @@ def test_of_two_passing_crest_rules_the_farther_lift_is_kept(crater_scene_side_s
     res = lift_crater(low, disp, sc.rig, LifterConfig(**SHARP))
     assert res.ok and res.crest_step == "lowest" and res.crest_search_px == 6
     np.testing.assert_allclose(res.center_m[:2], sc.center_rover[:2], atol=0.1)
+
+
+def test_two_crest_rules_that_agree_give_their_mean(crater_scene_side_sun):
+    """The same two lifts as above: 0.3 m or more apart, so a 1 % tolerance keeps the farther;
+    a tolerance wide enough to take both gives their mean."""
+    sc = crater_scene_side_sun
+    e = sc.ellipse
+    low = Ellipse(e.cx, e.cy + 8.0, e.a, e.b, e.angle_deg)
+    disp = _true_disparity(sc)
+    flank = lift_crater(low, disp, sc.rig, LifterConfig(reach_far_arc=False, **SHARP))
+    crest = lift_crater(low, disp, sc.rig, LifterConfig(**SHARP))
+    tight = lift_crater(low, disp, sc.rig, LifterConfig(mean_rules_within=0.01, **SHARP))
+    assert tight.crest_step == "lowest"
+    np.testing.assert_array_equal(tight.center_m, crest.center_m)
+    wide = lift_crater(low, disp, sc.rig, LifterConfig(mean_rules_within=0.5, **SHARP))
+    assert wide.ok and wide.crest_step == "both" and wide.crest_search_px == 6
+    np.testing.assert_allclose(wide.center_m, 0.5 * (flank.center_m + crest.center_m))
+    np.testing.assert_allclose(wide.diameter_m, 0.5 * (flank.diameter_m + crest.diameter_m))
+
+
+def test_the_mean_of_two_lifts_and_when_they_agree():
+    def lift(x, d, step):
+        return LiftResult(True, "ok", np.array([x, 0.0, 0.5]), d, np.eye(4) * x,
+                          crest_step=step, rim_disparity_px=x)
+    near, far = lift(10.0, 5.0, "largest"), lift(10.15, 5.2, "lowest")
+    assert _rules_agree(near, far, 0.02) and _rules_agree(far, near, 0.02)
+    assert not _rules_agree(near, far, 0.01) and not _rules_agree(near, far, None)
+    m = _mean_lift(near, far)
+    np.testing.assert_allclose(m.center_m, [10.075, 0.0, 0.5])
+    assert m.diameter_m == pytest.approx(5.1) and m.crest_step == "both"
+    np.testing.assert_allclose(m.covariance, np.eye(4) * 10.075)
+    assert m.rim_disparity_px == 10.15  # the farther lift's diagnostics
 
 
 def test_rows_needed_leave_room_above_a_box_for_a_fitted_ellipse():
