@@ -4,7 +4,9 @@ selection rules compared with the edge offsets calibrated for each, shard by sha
 ``lift_crater`` ("tangent") lifts each crater with up to four candidates: two crest searches
 (``snap_px``, then ``retry_snap_px``) and two crest rules (the largest disparity step near the
 ellipse, and with ``reach_far_arc`` the lowest step up to the far arc); today it keeps, from
-the first search with any lift passing every check, the farther passing lift. This study runs
+the first search with any lift passing every check, the mean of the two where both pass and
+their ranges agree within ``LifterConfig.mean_rules_within`` (2 %, session 67), else the
+farther passing lift (the rule of sessions 33-66). This study runs
 SGBM once per stereo pair (cached as ``--out/<set stem>/disparity/<image id>.npz``), lifts
 every evaluated crater from its labelled box's ellipse (the geometry report's default path)
 with every candidate at zero edge offsets, and keeps each candidate's outcome
@@ -197,8 +199,22 @@ def _only(rule: str) -> Rule:
     return pick
 
 
+def _mean_within_range(frac: float) -> Rule:
+    """The mean of the passing lifts where their ranges lie within ``frac`` of the farther
+    one's, else the farther (``LifterConfig.mean_rules_within``)."""
+    def pick(cands: list[dict[str, Any]]) -> dict[str, Any] | None:
+        passed = _first_search(cands)
+        if not passed:
+            return None
+        ranges = [_rng(c) for c in passed]
+        agree = max(ranges) - min(ranges) <= frac * max(ranges)
+        return _mean_of_both(passed) if agree else max(passed, key=_rng)
+    return pick
+
+
 RULES: dict[str, Rule] = {
-    "farther (today)": _extreme(max, _rng),
+    "mean within 2 % of the range, else farther (today)": _mean_within_range(0.02),
+    "farther (sessions 33-66)": _extreme(max, _rng),
     "nearer": _extreme(min, _rng),
     "largest first": _prefer("largest"),
     "lowest first": _prefer("lowest"),

@@ -16,16 +16,16 @@ def _cand(search, rule, ok=True, x=10.0, d=5.0, resid=0.3, disp=10.0):
 def test_rules_pick_from_the_first_search_with_a_passing_lift():
     cands = [_cand(6, "largest", ok=False), _cand(6, "lowest", ok=False),
              _cand(12, "largest", x=10.0), _cand(12, "lowest", x=10.4)]
-    assert study.RULES["farther (today)"](cands)["center_m"] == [10.4, 0.0]
+    assert study.RULES["farther (sessions 33-66)"](cands)["center_m"] == [10.4, 0.0]
     assert study.RULES["nearer"](cands)["center_m"] == [10.0, 0.0]
     assert study.RULES["largest first"](cands)["rule"] == "largest"
     assert study.RULES["mean of the passing"](cands)["center_m"] == pytest.approx([10.2, 0.0])
     # the first search wins even where a later one would read farther
     first = [_cand(6, "largest", x=9.0), _cand(6, "lowest", ok=False), _cand(12, "lowest", x=11)]
-    assert study.RULES["farther (today)"](first)["center_m"] == [9.0, 0.0]
+    assert study.RULES["farther (sessions 33-66)"](first)["center_m"] == [9.0, 0.0]
     assert study.RULES["lowest first"](first)["center_m"] == [9.0, 0.0]  # the one that passed
     assert study.RULES["lowest only"](first)["center_m"] == [11.0, 0.0]
-    assert study.RULES["farther (today)"]([_cand(6, "largest", ok=False)]) is None
+    assert study.RULES["farther (sessions 33-66)"]([_cand(6, "largest", ok=False)]) is None
 
 
 def test_the_disagreement_gate_and_the_gated_mean():
@@ -36,6 +36,10 @@ def test_the_disagreement_gate_and_the_gated_mean():
     mean = study.RULES["mean within 0.25 r, else farther"]
     assert mean(close)["center_m"] == pytest.approx([10.1, 0.0])
     assert mean(apart)["center_m"] == [11.0, 0.0]
+    today = study.RULES["mean within 2 % of the range, else farther (today)"]  # 2 % of 10.2 m
+    assert today(close)["center_m"] == pytest.approx([10.1, 0.0])
+    assert today([_cand(6, "largest", x=10.0), _cand(6, "lowest", x=10.3)])["center_m"] == [
+        10.3, 0.0]
 
 
 def _crater(d, near, along, bearing=0.3):
@@ -57,7 +61,7 @@ def test_a_calibrated_offset_takes_out_a_known_edge_offset():
         for near in np.linspace(5.0, 20.0, 61):
             rho = near + d / 2
             rows.append(_crater(d, near, (0.2 + 0.05 * d / 2) / (1 - d / 2 / rho)))
-    picked = [study._report_row(r, study.RULES["farther (today)"](r["candidates"])) for r in rows]
+    picked = [study._report_row(r, study.RULES["farther (sessions 33-66)"](r["candidates"])) for r in rows]
     radius, near, need, height = study.needed_offsets(picked)
     terms = study.fit_offset(radius, near, need, height)[:3]
     assert terms == pytest.approx((-0.2, -0.05, 0.0), abs=1e-6)
@@ -74,7 +78,8 @@ def test_compare_prints_a_row_per_rule(capsys):
                      for d in (5.0, 10.0) for near in np.linspace(5.0, 20.0, 61)])
     study.compare(sets, held_out=1)
     out = capsys.readouterr().out.splitlines()
-    assert len(out) == 1 + len(study.RULES) and out[1].startswith("farther (today) | ")
+    assert len(out) == 1 + len(study.RULES)
+    assert out[1].startswith("mean within 2 % of the range, else farther (today) | ")
     # a fold's offsets absorb the common 0.3 m: what is left is the noise
     assert float(out[1].split(" | ")[1].split(" / ")[0]) < 0.5
 
