@@ -21,7 +21,8 @@ half::
 
 The cache is a pickle per set (``<set name>.pkl``), written to a temporary name and renamed;
 it holds this version's objects (``Ellipse``, ``StereoRig``, ``LifterConfig``), so rebuild it
-after changing those classes. The report's step is reached through its module
+after changing those classes (a plain ``lift`` shows it: rows no longer reproduced). Being a
+pickle, load only caches this tool wrote. The report's step is reached through its module
 (``report._eval_crater``), wrapped for the caching run only.
 """
 
@@ -168,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         if args.command == "cache":
+            if args.disparity == "rendered" and args.refiner not in ("default", "none"):
+                raise LunarNavError("--refiner: refines SGBM's disparity, not the rendered one")
             refiner = (None if args.refiner == "none" or args.disparity == "rendered" else
                        DisparityRefiner(None if args.refiner == "default" else args.refiner))
             args.out.mkdir(parents=True, exist_ok=True)

@@ -49,3 +49,8 @@ def test_bad_caches_and_settings_are_one_line(cached, tmp_path, capsys):
     assert "version 1" in capsys.readouterr().err
     assert lc.main(["lift", str(cached), "--lifter", "nope=1"]) == 2
     assert "--lifter: expected FIELD=VALUE" in capsys.readouterr().err
+    assert lc.main(["cache", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    assert "none" in capsys.readouterr().err and not (tmp_path / "o" / "none.pkl").exists()
+    assert lc.main(["cache", str(tmp_path), "--out", str(tmp_path / "o"), "--disparity",
+                    "rendered", "--refiner", "r.onnx"]) == 2
+    assert "not the rendered one" in capsys.readouterr().err
