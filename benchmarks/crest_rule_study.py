@@ -46,6 +46,7 @@ from lunarnav_ml.geometry.lifter import (
     _crest_reach,
     _lift_tangent,
     _tries,
+    ranges_agree,
     rows_needed,
 )
 from lunarnav_ml.geometry.report import evaluated_label, read_gray, summarize
@@ -200,20 +201,22 @@ def _only(rule: str) -> Rule:
 
 
 def _mean_within_range(frac: float) -> Rule:
-    """The mean of the passing lifts where their ranges lie within ``frac`` of the farther
-    one's, else the farther (``LifterConfig.mean_rules_within``)."""
+    """The mean of the passing lifts where their ranges agree (the lifter's
+    :func:`~lunarnav_ml.geometry.lifter.ranges_agree`, ``LifterConfig.mean_rules_within``), else
+    the farther."""
     def pick(cands: list[dict[str, Any]]) -> dict[str, Any] | None:
         passed = _first_search(cands)
         if not passed:
             return None
         ranges = [_rng(c) for c in passed]
-        agree = max(ranges) - min(ranges) <= frac * max(ranges)
+        agree = ranges_agree(min(ranges), max(ranges), frac)
         return _mean_of_both(passed) if agree else max(passed, key=_rng)
     return pick
 
 
+TODAY = LifterConfig().mean_rules_within
 RULES: dict[str, Rule] = {
-    "mean within 2 % of the range, else farther (today)": _mean_within_range(0.02),
+    f"mean within {100 * TODAY:g} % of the range, else farther (today)": _mean_within_range(TODAY),
     "farther (sessions 33-66)": _extreme(max, _rng),
     "nearer": _extreme(min, _rng),
     "largest first": _prefer("largest"),

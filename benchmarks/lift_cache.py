@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from lifter_gate_study import _lifter_settings
+from lifter_gate_study import _lifter_settings, _mean_all_d
 
 from lunarnav_ml.errors import LunarNavError
 from lunarnav_ml.geometry import report
@@ -113,9 +113,11 @@ def relift(data: dict[str, Any], overrides: dict[str, Any]) -> list[dict[str, An
     """The report's rows of the cached craters, lifted again with ``overrides``."""
     s = data["settings"]
     rows = []
+    if not data["craters"]:
+        return rows
+    cfg = report._Settings(None, replace(s["lifter"], **overrides), s["fitter"], s["source"],
+                           s["disparity"])
     for c in data["craters"]:
-        cfg = report._Settings(None, replace(s["lifter"], **overrides), s["fitter"], s["source"],
-                               s["disparity"])
         y0, y1, x0, x1, xr = c["window"]
         disp = np.full(c["shape"], np.nan, np.float32)
         disp[y0:y1, x0:x1] = c["disp"]
@@ -141,11 +143,9 @@ def line(name: str, rows: list[dict[str, Any]]) -> str:
     m = summarize(rows)
     cells = [m["per_diameter"].get(d, {}).get("range_15_20", {}).get("center_3sigma_m")
              for d in DIAMETERS]
-    known = [c for c in cells if c is not None]
     text = " / ".join("-" if c is None else f"{c:.2f}" for c in cells)
-    mean = f"{np.mean(known):.3f}" if known else "-"
     pd = m["overall"]["pd_3d"]
-    return (f"{name} | {text} | {mean} | {'-' if pd is None else f'{pd:.3f}'} | "
+    return (f"{name} | {text} | {_mean_all_d(m):.3f} | {'-' if pd is None else f'{pd:.3f}'} | "
             f"{m['overall']['n_lifted']}/{len(rows)}")
 
 

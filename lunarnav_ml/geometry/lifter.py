@@ -477,10 +477,15 @@ def _horizontal_range(res: LiftResult) -> float:
     return float(np.hypot(*res.center_m[:2]))
 
 
+def ranges_agree(range_a: float, range_b: float, within: float | None) -> bool:
+    """Two lifts' horizontal ranges differ by at most ``within`` of the farther one (never with
+    ``within`` None): the rule of ``LifterConfig.mean_rules_within``."""
+    return within is not None and abs(range_a - range_b) <= within * max(range_a, range_b)
+
+
 def _rules_agree(a: LiftResult, b: LiftResult, within: float | None) -> bool:
-    """The two crest rules' lifts lie within ``within`` of the farther one's range."""
-    ra, rb = _horizontal_range(a), _horizontal_range(b)
-    return within is not None and abs(ra - rb) <= within * max(ra, rb)
+    """The two crest rules' lifts agree (:func:`ranges_agree`)."""
+    return ranges_agree(_horizontal_range(a), _horizontal_range(b), within)
 
 
 def _mean_lift(a: LiftResult, b: LiftResult) -> LiftResult:

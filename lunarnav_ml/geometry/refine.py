@@ -296,7 +296,7 @@ class DisparityRefiner:
         read with the receptive radius around it."""
         out = disp.copy()
         rows = np.flatnonzero(np.isfinite(disp).any(axis=1))
-        if not len(rows):
+        if not len(rows) or regions == []:  # nothing to refine (the gate passed no box)
             return out
         a, b = int(rows[0]), int(rows[-1]) + 1
         if regions is None:
