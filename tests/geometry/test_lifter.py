@@ -449,6 +449,22 @@ def test_a_near_rim_hidden_behind_a_brow_is_rejected(crater_scene):
     assert np.hypot(*read.center_m[:2]) < np.hypot(*sc.center_rover[:2]) - 0.1
 
 
+def test_the_hidden_rim_test_read_as_disparity(crater_scene):
+    """``min_flank_rise_px``: the rise as the disparity it moves a point at the crest by
+    (rise x d / H): a threshold just over that rejects the lift, just under keeps it as is."""
+    sc = crater_scene
+    disp = _true_disparity(sc)
+    rim = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(**SHARP))
+    assert rim.ok and rim.flank_rise_m > 0.05
+    px = rim.flank_rise_m * rim.rim_disparity_px / sc.rig.height_m
+    over = lift_crater(sc.ellipse, disp, sc.rig, LifterConfig(min_flank_rise_px=1.01 * px, **SHARP))
+    assert not over.ok and over.reason == "near_rim_hidden"
+    under = lift_crater(sc.ellipse, disp, sc.rig,
+                        LifterConfig(min_flank_rise_px=0.99 * px, **SHARP))
+    assert under.ok
+    np.testing.assert_array_equal(under.center_m, rim.center_m)
+
+
 def test_of_two_passing_crest_rules_the_farther_lift_is_kept(crater_scene_side_sun):
     """The ellipse 8 rows below the crest with a loose gate: the largest-step lift passes but
     reads the flank below the crest, too near; the lowest-step lift finds the crest."""
