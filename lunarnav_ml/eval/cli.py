@@ -13,6 +13,7 @@ Tasks:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -33,6 +34,26 @@ def add_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
                         "file: the shipped one; docs/geometry.md)")
     p.add_argument("--no-refiner", dest="refiner", action="store_const", const=None,
                    help=f"{prefix}lift from SGBM's disparity as it is")
+
+
+def add_lifter_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """``--min-flank-rise-px``: the lifter's stricter hidden-rim test (off by default)."""
+    p.add_argument("--min-flank-rise-px", type=float, default=None, metavar="PX",
+                   help=f"{prefix}also reject a lift as near_rim_hidden when its crest rises "
+                        "over the terrain in front by this much or less, read as disparity "
+                        "(LifterConfig.min_flank_rise_px, e.g. 0.15: fewer lifts read off a "
+                        "brow of nearer terrain, fewer lifts; off by default)")
+
+
+def lifter_overrides(args: argparse.Namespace, base: Any) -> Any:
+    """``base`` (a :class:`~lunarnav_ml.geometry.lifter.LifterConfig`) with the lifter options
+    of :func:`add_lifter_arguments` applied; ``base`` itself when none is given."""
+    px = args.min_flank_rise_px
+    if px is None:
+        return base
+    if not math.isfinite(px) or px < 0:
+        raise ConfigError(f"--min-flank-rise-px must be a finite number >= 0, got {px}")
+    return dataclasses.replace(base, min_flank_rise_px=float(px))
 
 
 def load_refiner(args: argparse.Namespace) -> Any:
@@ -114,12 +135,15 @@ def run_detection(args: argparse.Namespace) -> int:
 def run_geometry(args: argparse.Namespace) -> int:
     """The 3D geometry report of ``lunarnav eval --task geometry``."""
     from lunarnav_ml.geometry.lifter import load_edge_offsets
+    from lunarnav_ml.geometry.refine import default_lifter
     from lunarnav_ml.geometry.report import geometry_report
 
     # the rendered disparity is exact: nothing to refine
     refiner = load_refiner(args) if args.disparity == "sgbm" else None
     # the refiner's own edge offsets (if any) unless a calibration file is given
     lifter = load_edge_offsets(args.edge_offsets) if args.edge_offsets else None
+    if args.min_flank_rise_px is not None:
+        lifter = lifter_overrides(args, lifter or default_lifter(refiner))
     summary = geometry_report(Path(args.test_gt), args.out, detections=args.test_results,
                               ellipse_source=args.ellipse_source, disparity=args.disparity,
                               box_jitter=args.box_jitter, seed=args.seed, lifter=lifter,
@@ -240,6 +264,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="(geometry) SGBM on the pair, or the dataset's rendered disparity "
                         "(isolates the lifter)")
     add_refiner_arguments(p, "(geometry) ")
+    add_lifter_arguments(p, "(geometry) ")
     p.add_argument("--prior-sigma", type=float, default=1.0,
                    help="(baselines-lidar) map-prior position error per axis, m: each map "
                         "crater's prior center is offset by N(0, sigma); placements farther "

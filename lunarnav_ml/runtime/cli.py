@@ -13,7 +13,12 @@ import cv2
 import numpy as np
 
 from lunarnav_ml.errors import ConfigError, InputError
-from lunarnav_ml.eval.cli import add_refiner_arguments, load_refiner
+from lunarnav_ml.eval.cli import (
+    add_lifter_arguments,
+    add_refiner_arguments,
+    lifter_overrides,
+    load_refiner,
+)
 from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
 
 
@@ -47,6 +52,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="lift each crater from the box's inscribed ellipse (default) or from "
                         "the fitted rim ellipse; the fitted one is reported either way")
     add_refiner_arguments(p)
+    add_lifter_arguments(p)
     p.add_argument("--out", type=Path, default=Path("outputs/localize"), help="output folder")
     p.set_defaults(func=run_localize)
 
@@ -89,15 +95,19 @@ def run_localize(args: argparse.Namespace) -> int:
         raise InputError(f"{args.camera}: {err}") from None
     weights = args.weights or DEFAULT_WEIGHTS
     refiner = load_refiner(args)
+    from lunarnav_ml.geometry.refine import default_lifter
+
+    lifter = lifter_overrides(args, default_lifter(refiner))
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
     localizer = StereoCraterLocalizer(load_predictor(weights, args.threads, args.img_size), rig,
                                       conf_thres=args.conf, iou_thres=args.iou, stereo=stereo,
-                                      lift_from=args.lift_from, refiner=refiner)
+                                      lift_from=args.lift_from, refiner=refiner,
+                                      lifter=lifter)
     craters = localizer(left, right)
     record = {"left": str(args.left), "right": str(args.right), "camera": camera,
               "weights": str(weights), "conf": args.conf, "iou": args.iou,
-              "lift_from": args.lift_from,
+              "lift_from": args.lift_from, "min_flank_rise_px": lifter.min_flank_rise_px,
               "refiner": None if refiner is None else str(refiner.path),
               "sgbm": {"mode": stereo.mode, "num_disparities": stereo.num_disparities},
               "frame": "rover: x forward, y left, z up, m",
@@ -118,8 +128,11 @@ def run_localize(args: argparse.Namespace) -> int:
 
 def crater_record(crater: Any) -> dict[str, Any]:
     """One :class:`Crater3D` as JSON: box (xyxy px), score, ellipse (cx, cy, a, b, angle_deg),
-    whether the refiner corrected its disparity, and for a lifted crater its centre, diameter,
-    1-sigma horizontal error and covariance."""
+    whether the refiner corrected its disparity, for a lifted crater its centre, diameter,
+    1-sigma horizontal error and covariance, and for every lift tried (passed or rejected) what
+    it read (``lift``: the crest rule, the crest's rise over the terrain in front, the rim
+    disparity and its residual, the share of samples that found a crest edge, the samples
+    used): what a map-matching step can weigh or filter landmarks by."""
     from lunarnav_ml.utils.atomic import finite_or_none
 
     out: dict[str, Any] = {
@@ -131,6 +144,12 @@ def crater_record(crater: Any) -> dict[str, Any]:
         out.update(center_m=crater.center_m.tolist(), diameter_m=float(crater.diameter_m),
                    sigma_horizontal_m=finite_or_none(crater.lift.horizontal_sigma_m),
                    covariance_xyzd=crater.lift.covariance.tolist())
+    if crater.lift is not None:
+        lift = crater.lift
+        out["lift"] = {"crest_step": lift.crest_step, "n_rim": int(lift.n_rim),
+                       **{k: finite_or_none(getattr(lift, k)) for k in
+                          ("flank_rise_m", "rim_disparity_px", "rim_residual_px",
+                           "crest_fraction")}}
     return out
 
 

@@ -196,6 +196,16 @@ def test_eval_cli_geometry_options(dataset, tmp_path, capsys):
     m = json.loads((out / "geometry_metrics.json").read_text())
     assert m["settings"]["ellipse_source"] == "box" and m["settings"]["disparity"] == "sgbm"
     assert m["settings"]["box_jitter"] == 0.02 and m["settings"]["seed"] == 7
+    assert m["overall"]["n_lifted"] > 0
+    # the stricter hidden-rim test, far above any crest's rise: every lift rejected by it
+    assert main(["eval", "--task", "geometry", "--gt", str(dataset), "--min-flank-rise-px",
+                 "1000", "--out", str(tmp_path / "strict")]) == 0
+    strict = json.loads((tmp_path / "strict" / "geometry_metrics.json").read_text())
+    assert strict["overall"]["n_lifted"] == 0 and strict["reasons"]["lift:near_rim_hidden"] > 0
+    assert main(["eval", "--task", "geometry", "--gt", str(dataset), "--min-flank-rise-px",
+                 "-1", "--out", str(tmp_path / "z")]) == 2
+    assert "--min-flank-rise-px must be a finite number >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "z").exists()
     # a jitter with detections: one line, exit 2
     dets = tmp_path / "dets.json"
     dets.write_text("[]")

@@ -50,6 +50,11 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     assert out["refiner"] == str(DEFAULT_REFINER)  # on by default
     assert all(isinstance(c["refined"], bool) for c in out["craters"])
     assert np.array(best["covariance_xyzd"]).shape == (4, 4) and best["sigma_horizontal_m"] > 0
+    # what the lift read, for a map-matching step to weigh landmarks by
+    assert best["lift"]["crest_step"] in ("largest", "lowest", "both")
+    assert best["lift"]["flank_rise_m"] > 0 and best["lift"]["rim_disparity_px"] > 0
+    assert best["lift"]["n_rim"] >= 8 and 0 <= best["lift"]["crest_fraction"] <= 1
+    assert out["min_flank_rise_px"] is None  # the stricter hidden-rim test is off by default
     assert cv2.imread(str(tmp_path / "overlay.jpg")).shape == (480, 640, 3)
     assert set(out["timing_ms"]) == {"detect", "stereo", "craters"}
     assert all(v > 0 for v in out["timing_ms"].values())
@@ -67,6 +72,18 @@ def test_an_onnx_model_runs_through_the_onboard_runtime(pair, onnx_path, tmp_pat
     assert out["sgbm"] == {"mode": "3way", "num_disparities": 80}  # sized to 640 px
     assert all(c["ok"] == ("center_m" in c) for c in out["craters"])
     assert out["weights"] == str(onnx_path)
+
+
+def test_a_strict_hidden_rim_test_rejects_the_lifts_it_reads_as_brows(pair, tmp_path):
+    """``--min-flank-rise-px`` far above any real crest's rise: every lift that got as far as
+    the test is rejected as near_rim_hidden, and the record says which threshold ran."""
+    root, _ = pair
+    assert _run(root, "--min-flank-rise-px", "1000", "--out", str(tmp_path)) == 0
+    out = json.loads((tmp_path / "craters3d.json").read_text())
+    assert out["min_flank_rise_px"] == 1000.0
+    assert out["craters"] and not any(c["ok"] for c in out["craters"])
+    hidden = [c for c in out["craters"] if c["reason"] == "lift:near_rim_hidden"]
+    assert hidden and all(c["lift"]["flank_rise_m"] > 0 for c in hidden)
 
 
 def test_localize_with_an_onnx_model_never_imports_torch(pair, onnx_path, tmp_path):
@@ -110,7 +127,7 @@ CAMERA_FAULTS = {  # case: (camera fields, expected message)
 
 
 @pytest.mark.parametrize("case", [*CAMERA_FAULTS, "camera_corrupt", "sizes", "left_missing",
-                                  "conf", "refiner_missing"])
+                                  "conf", "refiner_missing", "rise_negative", "rise_nan"])
 def test_bad_inputs_are_one_line_and_write_nothing(pair, tmp_path, capsys, case):
     root, _ = pair
     work = tmp_path / "in"
@@ -123,7 +140,9 @@ def test_bad_inputs_are_one_line_and_write_nothing(pair, tmp_path, capsys, case)
         "sizes": "right.png: 320x240 px, but the left image is 640x480",
         "left_missing": "left.png: image file not found",
         "conf": "--conf must lie in [0, 1]",
-        "refiner_missing": "nope.onnx: disparity refiner not found"}[case]
+        "refiner_missing": "nope.onnx: disparity refiner not found",
+        "rise_negative": "--min-flank-rise-px must be a finite number >= 0, got -0.1",
+        "rise_nan": "--min-flank-rise-px must be a finite number >= 0, got nan"}[case]
     if case in CAMERA_FAULTS:
         rec = json.loads((work / "camera.json").read_text())
         rec["camera"].update(CAMERA_FAULTS[case][0])
@@ -136,6 +155,8 @@ def test_bad_inputs_are_one_line_and_write_nothing(pair, tmp_path, capsys, case)
         (work / "left.png").unlink()
     elif case == "conf":
         extra = ["--conf", "1.5"]
+    elif case.startswith("rise_"):
+        extra = ["--min-flank-rise-px", {"rise_negative": "-0.1", "rise_nan": "nan"}[case]]
     else:
         extra = ["--refiner", str(work / "nope.onnx")]
     code = _run(work, *extra, "--out", str(tmp_path / "out"))
