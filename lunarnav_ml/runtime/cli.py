@@ -74,6 +74,7 @@ def run_localize(args: argparse.Namespace) -> int:
     """Localize the pair's craters; write ``craters3d.json`` and ``overlay.jpg``."""
     from lunarnav_ml.eval.cli import load_predictor
     from lunarnav_ml.geometry.frames import StereoRig
+    from lunarnav_ml.geometry.refine import default_lifter
     from lunarnav_ml.geometry.stereo import SGBMStereo
     from lunarnav_ml.runtime.craters3d import StereoCraterLocalizer
     from lunarnav_ml.utils import atomic
@@ -95,8 +96,6 @@ def run_localize(args: argparse.Namespace) -> int:
         raise InputError(f"{args.camera}: {err}") from None
     weights = args.weights or DEFAULT_WEIGHTS
     refiner = load_refiner(args)
-    from lunarnav_ml.geometry.refine import default_lifter
-
     lifter = lifter_overrides(args, default_lifter(refiner))
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
