@@ -37,23 +37,31 @@ def add_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
 
 
 def add_lifter_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
-    """``--min-flank-rise-px``: the lifter's stricter hidden-rim test (off by default)."""
-    p.add_argument("--min-flank-rise-px", type=float, default=None, metavar="PX",
-                   help=f"{prefix}also reject a lift as near_rim_hidden when its crest rises "
-                        "over the terrain in front by this much or less, read as disparity "
-                        "(LifterConfig.min_flank_rise_px, e.g. 0.15: fewer lifts read off a "
-                        "brow of nearer terrain, fewer lifts; off by default)")
+    """``--min-flank-rise-px PX|none``: the lifter's hidden-rim test read to scale."""
+    p.add_argument("--min-flank-rise-px", default=None, metavar="PX|none",
+                   help=f"{prefix}reject a lift as near_rim_hidden when its crest rises over the "
+                        "terrain in front by this much or less, read as disparity "
+                        "(LifterConfig.min_flank_rise_px, default 0.12: higher drops more lifts "
+                        "read off a brow of nearer terrain, and more good ones; 'none' turns the "
+                        "test off)")
 
 
 def lifter_overrides(args: argparse.Namespace, base: Any) -> Any:
     """``base`` (a :class:`~lunarnav_ml.geometry.lifter.LifterConfig`) with the lifter options
     of :func:`add_lifter_arguments` applied; ``base`` itself when none is given."""
-    px = args.min_flank_rise_px
-    if px is None:
+    text = args.min_flank_rise_px
+    if text is None:
         return base
+    if str(text).lower() == "none":
+        return dataclasses.replace(base, min_flank_rise_px=None)
+    try:
+        px = float(text)
+    except ValueError:
+        px = float("nan")
     if not math.isfinite(px) or px < 0:
-        raise ConfigError(f"--min-flank-rise-px must be a finite number >= 0, got {px}")
-    return dataclasses.replace(base, min_flank_rise_px=float(px))
+        raise ConfigError(f"--min-flank-rise-px must be a finite number >= 0 or 'none', "
+                          f"got {text}")
+    return dataclasses.replace(base, min_flank_rise_px=px)
 
 
 def load_refiner(args: argparse.Namespace) -> Any:

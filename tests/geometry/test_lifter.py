@@ -440,11 +440,12 @@ def test_a_near_rim_hidden_behind_a_brow_is_rejected(crater_scene):
         down = -(sc.rig.rays(uv) @ sc.rig.rotation.T)[:, 2]  # rover-frame drop per unit depth
         brow[rows, round(u)] = sc.rig.focal_px * sc.rig.baseline_m * down / (
             sc.rig.height_m - plateau)
-    hidden = lift_crater(sc.ellipse, brow, sc.rig, LifterConfig(**SHARP))
-    assert not hidden.ok and hidden.reason == "near_rim_hidden"
+    hidden = lift_crater(sc.ellipse, brow, sc.rig, LifterConfig(min_flank_rise_px=None, **SHARP))
+    assert not hidden.ok and hidden.reason == "near_rim_hidden"  # the 0 m bound alone
     assert abs(hidden.flank_rise_m) < 0.03
     # unchecked, the lift reads the brow: the crater comes out too near
-    read = lift_crater(sc.ellipse, brow, sc.rig, LifterConfig(min_flank_rise_m=None, **SHARP))
+    read = lift_crater(sc.ellipse, brow, sc.rig,
+                       LifterConfig(min_flank_rise_m=None, min_flank_rise_px=None, **SHARP))
     assert read.ok
     assert np.hypot(*read.center_m[:2]) < np.hypot(*sc.center_rover[:2]) - 0.1
 

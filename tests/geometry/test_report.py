@@ -204,7 +204,7 @@ def test_eval_cli_geometry_options(dataset, tmp_path, capsys):
     assert strict["overall"]["n_lifted"] == 0 and strict["reasons"]["lift:near_rim_hidden"] > 0
     assert main(["eval", "--task", "geometry", "--gt", str(dataset), "--min-flank-rise-px",
                  "-1", "--out", str(tmp_path / "z")]) == 2
-    assert "--min-flank-rise-px must be a finite number >= 0" in capsys.readouterr().err
+    assert "--min-flank-rise-px must be a finite number >= 0 or 'none'" in capsys.readouterr().err
     assert not (tmp_path / "z").exists()
     # a jitter with detections: one line, exit 2
     dets = tmp_path / "dets.json"

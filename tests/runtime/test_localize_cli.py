@@ -54,7 +54,7 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     assert best["lift"]["crest_step"] in ("largest", "lowest", "both")
     assert best["lift"]["flank_rise_m"] > 0 and best["lift"]["rim_disparity_px"] > 0
     assert best["lift"]["n_rim"] >= 8 and 0 <= best["lift"]["crest_fraction"] <= 1
-    assert out["min_flank_rise_px"] is None  # the stricter hidden-rim test is off by default
+    assert out["min_flank_rise_px"] == 0.12  # the hidden-rim test read to scale, by default
     assert cv2.imread(str(tmp_path / "overlay.jpg")).shape == (480, 640, 3)
     assert set(out["timing_ms"]) == {"detect", "stereo", "craters"}
     assert all(v > 0 for v in out["timing_ms"].values())
@@ -84,6 +84,9 @@ def test_a_strict_hidden_rim_test_rejects_the_lifts_it_reads_as_brows(pair, tmp_
     assert out["craters"] and not any(c["ok"] for c in out["craters"])
     hidden = [c for c in out["craters"] if c["reason"] == "lift:near_rim_hidden"]
     assert hidden and all(c["lift"]["flank_rise_m"] > 0 for c in hidden)
+    # 'none' turns the test off: the record says so
+    assert _run(root, "--min-flank-rise-px", "none", "--out", str(tmp_path / "off")) == 0
+    assert json.loads((tmp_path / "off" / "craters3d.json").read_text())["min_flank_rise_px"] is None
 
 
 def test_localize_with_an_onnx_model_never_imports_torch(pair, onnx_path, tmp_path):
@@ -141,8 +144,8 @@ def test_bad_inputs_are_one_line_and_write_nothing(pair, tmp_path, capsys, case)
         "left_missing": "left.png: image file not found",
         "conf": "--conf must lie in [0, 1]",
         "refiner_missing": "nope.onnx: disparity refiner not found",
-        "rise_negative": "--min-flank-rise-px must be a finite number >= 0, got -0.1",
-        "rise_nan": "--min-flank-rise-px must be a finite number >= 0, got nan"}[case]
+        "rise_negative": "--min-flank-rise-px must be a finite number >= 0 or 'none', got -0.1",
+        "rise_nan": "--min-flank-rise-px must be a finite number >= 0 or 'none', got nan"}[case]
     if case in CAMERA_FAULTS:
         rec = json.loads((work / "camera.json").read_text())
         rec["camera"].update(CAMERA_FAULTS[case][0])
