@@ -23,7 +23,9 @@ The cache is a pickle per set (``<set name>.pkl``), written to a temporary name 
 it holds this version's objects (``Ellipse``, ``StereoRig``, ``LifterConfig``), so rebuild it
 after changing those classes (a plain ``lift`` shows it: rows no longer reproduced). Being a
 pickle, load only caches this tool wrote. The report's step is reached through its module
-(``report._eval_crater``), wrapped for the caching run only.
+(``report._eval_crater``), wrapped for the caching run only. A cache keeps the lifter
+settings it was written with (a field added since takes its class default); ``lift --today``
+starts from today's defaults instead, with the cached run's edge offsets.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from lifter_gate_study import _lifter_settings, _mean_all_d
 
 from lunarnav_ml.errors import LunarNavError
 from lunarnav_ml.geometry import report
+from lunarnav_ml.geometry.lifter import EDGE_OFFSET_TERMS, LifterConfig
 from lunarnav_ml.geometry.refine import DisparityRefiner
 from lunarnav_ml.geometry.report import summarize
 
@@ -109,13 +112,23 @@ def load(path: Path) -> dict[str, Any]:
     return data
 
 
-def relift(data: dict[str, Any], overrides: dict[str, Any]) -> list[dict[str, Any]]:
-    """The report's rows of the cached craters, lifted again with ``overrides``."""
+def todays_lifter(cached: LifterConfig) -> LifterConfig:
+    """Today's :class:`LifterConfig` defaults with the cached run's edge offsets (those of the
+    refiner it ran with): a cache keeps the lifter settings of the day it was written."""
+    keys = [k for terms in EDGE_OFFSET_TERMS.values() for k in terms]
+    return replace(LifterConfig(), **{k: getattr(cached, k) for k in keys})
+
+
+def relift(data: dict[str, Any], overrides: dict[str, Any], today: bool = False
+           ) -> list[dict[str, Any]]:
+    """The report's rows of the cached craters, lifted again with ``overrides`` (on the cached
+    lifter settings, or with ``today`` on :func:`todays_lifter`)."""
     s = data["settings"]
     rows = []
     if not data["craters"]:
         return rows
-    cfg = report._Settings(None, replace(s["lifter"], **overrides), s["fitter"], s["source"],
+    base = todays_lifter(s["lifter"]) if today else s["lifter"]
+    cfg = report._Settings(None, replace(base, **overrides), s["fitter"], s["source"],
                            s["disparity"])
     for c in data["craters"]:
         y0, y1, x0, x1, xr = c["window"]
@@ -166,6 +179,9 @@ def main(argv: list[str] | None = None) -> int:
     lift.add_argument("cache", type=Path, help="the folder `cache` wrote")
     lift.add_argument("--lifter", nargs="*", default=[], metavar="FIELD=VALUE",
                       help="LifterConfig settings changed from the cached run's")
+    lift.add_argument("--today", action="store_true",
+                      help="start from today's LifterConfig defaults (with the cached run's "
+                           "edge offsets) instead of the settings the cache was written with")
     args = p.parse_args(argv)
     try:
         if args.command == "cache":
@@ -188,10 +204,10 @@ def main(argv: list[str] | None = None) -> int:
         pooled = []
         for f in files:
             data = load(f)
-            rows = relift(data, overrides)
+            rows = relift(data, overrides, args.today)
             pooled += rows
             check = ""
-            if not overrides:
+            if not overrides and not args.today:
                 bad = mismatches([c["row"] for c in data["craters"]], rows)
                 check = f" | reproduced {len(rows) - bad}/{len(rows)}"
             print(line(f.stem, rows) + check, flush=True)

@@ -260,7 +260,7 @@ class LifterConfig:
             lowest seven-diameter mean at 15-20 m, 0.999 -> 0.962 m, within 1.5 points of
             Pd(3D), 0.955 -> 0.944); on eight shards of two new seeds, 3 and 4, it removed
             a 5 m crater read 3.7-4.1 m too near (5 m cell 2.77 -> 0.54 m, mean 1.30 -> 0.98
-            m, Pd(3D) 0.918 -> 0.908); on the evaluation half every 3-sigma figure level or
+            m, Pd(3D) 0.918 -> 0.907); on the evaluation half every 3-sigma figure level or
             lower (mean 1.34 -> 1.31 m, all ranges 1.30 -> 1.27 m, Pd(3D) 0.963 -> 0.960;
             BENCHMARKS.md, issue 5, "A hidden near rim read to scale"). None turns it off.
         crest_at_invalid: "tangent": where a crest search finds no disparity jump but the

@@ -37,6 +37,28 @@ def test_a_changed_setting_changes_the_lift(cached, capsys):
     assert lc.mismatches([data["craters"][0]["row"]], lc.relift(data, {})) == 1
 
 
+def test_today_starts_from_the_current_defaults(cached, capsys):
+    """A cache written under older defaults: ``--today`` lifts with today's LifterConfig and
+    the cached run's edge offsets; without it the cache's own settings stand."""
+    from dataclasses import replace
+
+    from lunarnav_ml.geometry.lifter import LifterConfig
+
+    data = lc.load(cached / "set_a.pkl")
+    old = replace(data["settings"]["lifter"], box_rim_offset=0.3, match_half_width=3,
+                  min_flank_rise_px=None)
+    data["settings"]["lifter"] = old
+    today = lc.todays_lifter(old)
+    assert today == replace(LifterConfig(), box_rim_offset=0.3)
+    now = lc.relift(data, {}, today=True)[0]["center_m"]
+    assert now == lc.relift({**data, "settings": {**data["settings"], "lifter": today}},
+                            {})[0]["center_m"]
+    assert now != lc.relift(data, {})[0]["center_m"]
+    assert lc.main(["lift", str(cached), "--today"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[1].startswith("set_a |") and "reproduced" not in out[1]
+
+
 def test_bad_caches_and_settings_are_one_line(cached, tmp_path, capsys):
     assert lc.main(["lift", str(tmp_path)]) == 2
     assert "no lift cache" in capsys.readouterr().err
