@@ -149,9 +149,8 @@ def run_geometry(args: argparse.Namespace) -> int:
     # the rendered disparity is exact: nothing to refine
     refiner = load_refiner(args) if args.disparity == "sgbm" else None
     # the refiner's own edge offsets (if any) unless a calibration file is given
-    lifter = load_edge_offsets(args.edge_offsets) if args.edge_offsets else None
-    if args.min_flank_rise_px is not None:
-        lifter = lifter_overrides(args, lifter or default_lifter(refiner))
+    base = load_edge_offsets(args.edge_offsets) if args.edge_offsets else default_lifter(refiner)
+    lifter = lifter_overrides(args, base)
     summary = geometry_report(Path(args.test_gt), args.out, detections=args.test_results,
                               ellipse_source=args.ellipse_source, disparity=args.disparity,
                               box_jitter=args.box_jitter, seed=args.seed, lifter=lifter,

@@ -1,7 +1,9 @@
 import pickle
+from dataclasses import replace
 
 import pytest
 
+from lunarnav_ml.geometry.lifter import LifterConfig
 from tests.bench_scripts import load_script
 from tests.geometry.test_report import _write_dataset
 
@@ -40,10 +42,6 @@ def test_a_changed_setting_changes_the_lift(cached, capsys):
 def test_today_starts_from_the_current_defaults(cached, capsys):
     """A cache written under older defaults: ``--today`` lifts with today's LifterConfig and
     the cached run's edge offsets; without it the cache's own settings stand."""
-    from dataclasses import replace
-
-    from lunarnav_ml.geometry.lifter import LifterConfig
-
     data = lc.load(cached / "set_a.pkl")
     old = replace(data["settings"]["lifter"], box_rim_offset=0.3, match_half_width=3,
                   min_flank_rise_px=None)
