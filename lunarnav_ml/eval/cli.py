@@ -36,6 +36,27 @@ def add_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
                    help=f"{prefix}lift from SGBM's disparity as it is")
 
 
+def add_box_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """``--box-refiner [ONNX]`` (default: the shipped box refiner) and ``--no-box-refiner``."""
+    p.add_argument("--box-refiner", nargs="?", const=SHIPPED, default=SHIPPED, metavar="ONNX",
+                   help=f"{prefix}move each detected crater box's edges onto the rim with this "
+                        "box refiner from `lunarnav train-box-refiner` before the lift (default, "
+                        "or no file: the shipped one; docs/geometry.md)")
+    p.add_argument("--no-box-refiner", dest="box_refiner", action="store_const", const=None,
+                   help=f"{prefix}lift from the detector's boxes as they are")
+
+
+def load_box_refiner(args: argparse.Namespace) -> Any:
+    """The :class:`~lunarnav_ml.geometry.boxrefine.BoxRefiner` of ``--box-refiner`` (None with
+    ``--no-box-refiner``), on ``--threads`` onnxruntime threads."""
+    if args.box_refiner is None:
+        return None
+    from lunarnav_ml.geometry.boxrefine import BoxRefiner
+
+    return BoxRefiner(None if args.box_refiner == SHIPPED else args.box_refiner,
+                      threads=args.threads)
+
+
 def add_lifter_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
     """``--min-flank-rise-px PX|none``: the lifter's hidden-rim test read to scale."""
     p.add_argument("--min-flank-rise-px", default=None, metavar="PX|none",
@@ -151,10 +172,13 @@ def run_geometry(args: argparse.Namespace) -> int:
     # the refiner's own edge offsets (if any) unless a calibration file is given
     base = load_edge_offsets(args.edge_offsets) if args.edge_offsets else default_lifter(refiner)
     lifter = lifter_overrides(args, base)
+    # the box refiner moves a detector's boxes; labelled boxes are the rim's own
+    box_refiner = load_box_refiner(args) if args.test_results is not None else None
     summary = geometry_report(Path(args.test_gt), args.out, detections=args.test_results,
                               ellipse_source=args.ellipse_source, disparity=args.disparity,
                               box_jitter=args.box_jitter, seed=args.seed, lifter=lifter,
-                              refiner=refiner, progress=not args.no_progress)
+                              refiner=refiner, box_refiner=box_refiner,
+                              progress=not args.no_progress)
     print(json.dumps(summary.get("summary", summary), indent=1, default=str)[:2000])
     return 0
 
@@ -271,6 +295,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="(geometry) SGBM on the pair, or the dataset's rendered disparity "
                         "(isolates the lifter)")
     add_refiner_arguments(p, "(geometry) ")
+    add_box_refiner_arguments(p, "(geometry, with --test-results) ")
     add_lifter_arguments(p, "(geometry) ")
     p.add_argument("--prior-sigma", type=float, default=1.0,
                    help="(baselines-lidar) map-prior position error per axis, m: each map "

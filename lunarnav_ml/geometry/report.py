@@ -30,6 +30,7 @@ from lunarnav_ml.errors import InputError
 from lunarnav_ml.eval.predict import check_coco_results, read_coco_results
 from lunarnav_ml.eval.spread import horizontal_spread
 from lunarnav_ml.geometry._checks import crater_labels_3d
+from lunarnav_ml.geometry.boxrefine import BoxRefiner
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig, camera_to_rover
 from lunarnav_ml.geometry.lifter import LifterConfig, lift_crater, rows_needed
@@ -64,6 +65,7 @@ def geometry_report(
     lifter: LifterConfig | None = None,
     fitter: EllipseFitter | None = None,
     refiner: DisparityRefiner | None = None,
+    box_refiner: BoxRefiner | None = None,
     plots: bool = True,
     progress: bool = False,
 ) -> dict[str, Any]:
@@ -93,6 +95,9 @@ def geometry_report(
             (:class:`~lunarnav_ml.geometry.refine.DisparityRefiner`; not with ``disparity``
             "rendered"); without ``lifter`` the lifter then takes the refiner's edge offsets
             (:meth:`~lunarnav_ml.geometry.refine.DisparityRefiner.lifter_config`).
+        box_refiner: moves each detected crater box's edges before the detections are matched
+            to the labels (:class:`~lunarnav_ml.geometry.boxrefine.BoxRefiner`, as
+            ``StereoCraterLocalizer`` does; with ``detections`` only).
         plots: write the PNG plots.
         progress: tqdm bar over the images on stderr.
 
@@ -107,6 +112,8 @@ def geometry_report(
         raise InputError(f"box_jitter: expected a fraction in [0, 0.5), got {box_jitter!r}")
     if box_jitter and detections is not None:
         raise InputError("box_jitter: applies to the labelled boxes; not with detections")
+    if box_refiner is not None and detections is None:
+        raise InputError("box_refiner: moves a detector's boxes; give detections")
     if ellipse_source not in ELLIPSE_SOURCES:
         raise InputError(f"ellipse_source: expected one of {ELLIPSE_SOURCES}, got {ellipse_source!r}")
     if disparity not in DISPARITY_SOURCES:
@@ -125,7 +132,7 @@ def geometry_report(
     if refiner is not None and disparity != "sgbm":
         raise InputError(f"refiner: refines SGBM's disparity, not the {disparity!r} one")
     settings = _Settings(stereo, lifter or default_lifter(refiner), fitter or EllipseFitter(),
-                         ellipse_source, disparity, box_jitter, seed, refiner)
+                         ellipse_source, disparity, box_jitter, seed, refiner, box_refiner)
     rows: list[dict[str, Any]] = []
     for im in tqdm(images, desc="geometry", unit="img", disable=not progress):
         if by_image.get(im["id"]):
@@ -139,7 +146,8 @@ def geometry_report(
                            "box_jitter": box_jitter, "seed": seed, "n_images": len(images),
                            "refiner": None if refiner is None else str(refiner.path),
                            "refiner_max_disparity_px": getattr(refiner, "max_disparity_px", None),
-                           "refiner_passes": getattr(refiner, "passes", None)}
+                           "refiner_passes": getattr(refiner, "passes", None),
+                           "box_refiner": None if box_refiner is None else str(box_refiner.path)}
     _write_outputs(Path(out_dir), metrics, rows, plots)
     return metrics
 
@@ -147,10 +155,11 @@ def geometry_report(
 class _Settings:
     def __init__(self, stereo: SGBMStereo | None, lifter: LifterConfig, fitter: EllipseFitter,
                  source: str, disparity: str, box_jitter: float = 0.0, seed: int = 0,
-                 refiner: DisparityRefiner | None = None) -> None:
+                 refiner: DisparityRefiner | None = None,
+                 box_refiner: BoxRefiner | None = None) -> None:
         self.stereo, self.lifter, self.fitter, self.source = stereo, lifter, fitter, source
         self.disparity, self.box_jitter, self.seed = disparity, box_jitter, seed
-        self.refiner = refiner
+        self.refiner, self.box_refiner = refiner, box_refiner
 
 
 def annotations_path(dataset_dir: str | Path) -> Path:
@@ -203,13 +212,16 @@ def _eval_image(root: Path, im: dict[str, Any], anns: list[dict[str, Any]],
         rig = StereoRig.from_camera_record(im["camera"])
     except InputError as err:
         raise InputError(f"{root / im['file_name']} (image id {im['id']}): {err}") from None
+    left = right = disp = None
+    if dets and cfg.box_refiner is not None:  # the detector's boxes moved onto the rims
+        left = read_gray(root, im["file_name"])
+        dets = cfg.box_refiner.refine_results(left, dets)
     boxes = [_box_for(ann, dets, cfg) for ann in anns]
     used = [b for b in boxes if b is not None]
-    left = right = disp = None
     timing = {}
     refined = [False] * len(boxes)
     if used:  # with detections that missed every crater there is nothing to lift
-        left = read_gray(root, im["file_name"])
+        left = read_gray(root, im["file_name"]) if left is None else left
         t0 = time.perf_counter()
         if cfg.disparity == "rendered":  # the right image is not needed
             disp = read_disparity(root, im)

@@ -14,9 +14,11 @@ import numpy as np
 
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.eval.cli import (
+    add_box_refiner_arguments,
     add_lifter_arguments,
     add_refiner_arguments,
     lifter_overrides,
+    load_box_refiner,
     load_refiner,
 )
 from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
@@ -52,6 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="lift each crater from the box's inscribed ellipse (default) or from "
                         "the fitted rim ellipse; the fitted one is reported either way")
     add_refiner_arguments(p)
+    add_box_refiner_arguments(p)
     add_lifter_arguments(p)
     p.add_argument("--out", type=Path, default=Path("outputs/localize"), help="output folder")
     p.set_defaults(func=run_localize)
@@ -96,18 +99,20 @@ def run_localize(args: argparse.Namespace) -> int:
         raise InputError(f"{args.camera}: {err}") from None
     weights = args.weights or DEFAULT_WEIGHTS
     refiner = load_refiner(args)
+    box_refiner = load_box_refiner(args)
     lifter = lifter_overrides(args, default_lifter(refiner))
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
     localizer = StereoCraterLocalizer(load_predictor(weights, args.threads, args.img_size), rig,
                                       conf_thres=args.conf, iou_thres=args.iou, stereo=stereo,
                                       lift_from=args.lift_from, refiner=refiner,
-                                      lifter=lifter)
+                                      box_refiner=box_refiner, lifter=lifter)
     craters = localizer(left, right)
     record = {"left": str(args.left), "right": str(args.right), "camera": camera,
               "weights": str(weights), "conf": args.conf, "iou": args.iou,
               "lift_from": args.lift_from, "min_flank_rise_px": lifter.min_flank_rise_px,
               "refiner": None if refiner is None else str(refiner.path),
+              "box_refiner": None if box_refiner is None else str(box_refiner.path),
               "sgbm": {"mode": stereo.mode, "num_disparities": stereo.num_disparities},
               "frame": "rover: x forward, y left, z up, m",
               "timing_ms": {k: round(v, 1) for k, v in localizer.timing_ms.items()},

@@ -18,6 +18,7 @@ import numpy as np
 
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.geometry._checks import as_image
+from lunarnav_ml.geometry.boxrefine import BoxRefiner
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig
 from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater, rows_needed
@@ -99,12 +100,17 @@ class StereoCraterLocalizer:
         refiner: corrects the disparity around each crater box before the lifts
             (:class:`~lunarnav_ml.geometry.refine.DisparityRefiner`, onnxruntime); None: SGBM's
             disparity as it is.
+        box_refiner: moves each detected crater box's edges onto the rim from a
+            full-resolution crop before the lift
+            (:class:`~lunarnav_ml.geometry.boxrefine.BoxRefiner`, onnxruntime); None: the
+            detector's boxes as they are. The crater's box in the output is the refined one.
     """
 
     def __init__(self, detector: BoxDetector, rig: StereoRig, *, conf_thres: float = 0.25,
                  iou_thres: float = 0.6, stereo: SGBMStereo | None = None,
                  fitter: EllipseFitter | None = None, lifter: LifterConfig | None = None,
-                 lift_from: str = "box", refiner: DisparityRefiner | None = None) -> None:
+                 lift_from: str = "box", refiner: DisparityRefiner | None = None,
+                 box_refiner: BoxRefiner | None = None) -> None:
         if lift_from not in LIFT_SOURCES:
             raise ConfigError(f"lift_from: expected one of {LIFT_SOURCES}, got {lift_from!r}")
         names = list(detector.class_names)
@@ -118,6 +124,7 @@ class StereoCraterLocalizer:
         self.lifter = lifter or default_lifter(refiner)  # a refined map has its own offsets
         self.lift_from = lift_from
         self.refiner = refiner
+        self.box_refiner = box_refiner
         self.timing_ms: dict[str, float] = {}  # the last frame's, see __call__
 
     def detect_boxes(self, left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -162,7 +169,8 @@ class StereoCraterLocalizer:
         Returns:
             One :class:`Crater3D` per crater box above ``conf_thres``, by decreasing score;
             check ``ok`` / ``reason`` before using ``center_m``. ``timing_ms`` then holds the
-            frame's wall time per stage: "detect", "stereo" (gray conversion and disparity,
+            frame's wall time per stage: "detect", "box_refine" (0 without a box refiner),
+            "stereo" (gray conversion and disparity,
             with the refiner's correction; 0 without crater boxes) and "craters" (every box's
             ellipse and lift), ms.
         """
@@ -174,11 +182,17 @@ class StereoCraterLocalizer:
         t0 = time.perf_counter()
         boxes, scores = self.detect_boxes(left)
         t1 = time.perf_counter()
-        self.timing_ms = {"detect": 1e3 * (t1 - t0), "stereo": 0.0, "craters": 0.0}
+        self.timing_ms = {"detect": 1e3 * (t1 - t0), "box_refine": 0.0, "stereo": 0.0,
+                          "craters": 0.0}
         if len(boxes) == 0:
             return []
         pair = (as_image("left", left), as_image("right", right))  # gray once a frame
         xywh = np.column_stack([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]])
+        if self.box_refiner is not None:  # the detector's edges moved onto the rims
+            xywh = self.box_refiner(pair[0], xywh)
+            boxes = np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]])
+            self.timing_ms["box_refine"] = 1e3 * (time.perf_counter() - t1)
+            t1 = time.perf_counter()
         # only the rows the boxes' lifts read, as the geometry evaluation matches them
         disparity = self.disparity(*pair, rows=rows_needed(xywh, left.shape[0], self.lifter))
         refined = np.zeros(len(boxes), bool)

@@ -1,5 +1,6 @@
 """``lunarnav train`` (the LightningCLI of train.py), ``lunarnav detect``,
-``lunarnav average``, ``lunarnav distill-stem`` and ``lunarnav train-refiner``."""
+``lunarnav average``, ``lunarnav distill-stem``, ``lunarnav train-refiner`` and
+``lunarnav train-box-refiner``."""
 
 from __future__ import annotations
 
@@ -121,6 +122,59 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train_refiner)
+
+    p = subparsers.add_parser(
+        "train-box-refiner", help="train the crater-box refiner of the 3D lift",
+        description="Cuts full-resolution crops around crater labels (jittered) and around a "
+                    "detector's crater boxes, trains the small net that moves a box's edges "
+                    "onto the labelled rim's box and exports it as ONNX, for 'lunarnav localize "
+                    "--box-refiner' and 'lunarnav eval --task geometry --box-refiner' "
+                    "(docs/geometry.md).")
+    p.add_argument("datasets", type=Path, nargs="+",
+                   help="COCO sets with crater labels: folders with annotations.json (or one "
+                        "annotations*.json shard), or the files. Use development sets, not a "
+                        "set you will test on")
+    p.add_argument("--detections", type=Path, nargs="+", default=None,
+                   help="a detector's COCO results on each set, in the same order (the "
+                        "detections.json of 'lunarnav eval --task detection --out D'); 'none' "
+                        "for a set without; default: labels only")
+    p.add_argument("--out", type=Path, required=True, help="ONNX file to write")
+    p.add_argument("--epochs", type=int, default=None, help="passes over the crops (default 3)")
+    p.add_argument("--batch", type=int, default=None, help="crops per step (default 256)")
+    p.add_argument("--label-jitters", type=int, default=None,
+                   help="jittered crops per label (default 2)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="seed of the jitters, the split and the weights (default 0)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_train_box_refiner)
+
+
+def run_train_box_refiner(args: argparse.Namespace) -> int:
+    """Crops, training and ONNX export of the box refiner (``--out`` written atomically)."""
+    import torch
+
+    from lunarnav_ml.training.box_refiner import BoxRefinerConfig, run
+    from lunarnav_ml.utils.atomic import check_destination
+
+    given = {k: getattr(args, k) for k in ("epochs", "batch", "label_jitters", "seed")}
+    config = BoxRefinerConfig(**{k: v for k, v in given.items() if v is not None})
+    detections = ([None if str(d).lower() == "none" else d for d in args.detections]
+                  if args.detections is not None else [None] * len(args.datasets))
+    if len(detections) != len(args.datasets):
+        raise ConfigError(f"--detections: one results file (or 'none') per set: "
+                          f"{len(args.datasets)} set(s), {len(detections)} given")
+    check_destination(args.out)
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ConfigError(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+    report = run(args.datasets, detections, args.out, config, progress=not args.quiet)
+    print(f"lunarnav train-box-refiner: {report.n_train} training crops, {report.steps} steps "
+          f"in {report.seconds:.0f} s; held-out mean |edge error| {report.refined_l1:.4f} of "
+          f"the crop (the input boxes' side edges {report.input_l1:.4f}; {report.n_val} crops) "
+          f"-> {args.out}")
+    return 0
 
 
 def run_train_refiner(args: argparse.Namespace) -> int:

@@ -130,3 +130,18 @@ def test_bad_pairs_and_detectors(scene):
 
     with pytest.raises(ConfigError, match="no 'crater'"):
         StereoCraterLocalizer(NoCraters(scene.box), scene.rig)
+
+
+def test_the_box_refiner_moves_the_detector_boxes(scene):
+    from lunarnav_ml.geometry.boxrefine import BoxRefiner
+
+    x, y, w, h = scene.box
+    narrow = (x + 0.08 * w, y + 0.1 * h, 0.84 * w, 0.9 * h)  # a detector's too-narrow box
+    plain = StereoCraterLocalizer(TruthDetector(narrow), scene.rig)(rgb(scene.left),
+                                                                     rgb(scene.right))
+    loc = StereoCraterLocalizer(TruthDetector(narrow), scene.rig, box_refiner=BoxRefiner())
+    craters = loc(rgb(scene.left), rgb(scene.right))
+    assert len(craters) == 1 and craters[0].ok, craters[0].reason
+    assert not np.allclose(craters[0].box, plain[0].box)  # the refined box is the one kept
+    assert loc.timing_ms["box_refine"] > 0 and plain[0].box[2] - plain[0].box[0] < 0.85 * w + 1
+    assert plain[0].ok and "box_refine" in loc.timing_ms

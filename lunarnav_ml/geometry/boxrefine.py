@@ -1,0 +1,175 @@
+"""A learned refinement of detected crater boxes from a full-resolution crop (torch-free).
+
+The detector reads a 1024 px frame at its 384 px training side, and its crater boxes' edges are
+off by 6-12 % of the side, too narrow on average and low at the bottom. The lift takes a crater's
+angular width from the box, and with it the diameter and the centre behind the near rim, so the
+box's error is the end-to-end 3D error (BENCHMARKS.md issue 5, "A learned box refiner"). A small
+network (:mod:`lunarnav_ml.training.box_refiner`) reads the left image around each box at full
+resolution and regresses the labelled box's four edges.
+
+The crop (:func:`crop_frames`): centred on the box, 1.5 box widths wide and 1.5 box heights plus
+0.15 widths high (craters seen from 1.5 m are flat boxes; the extra height holds the rim's
+context), resampled to ``CROP_W`` x ``CROP_H``. Each crop is normalized by its own mean and
+spread (:func:`normalize_crops`), and the net returns the box's left, top, right and bottom
+edges as fractions of the crop (:func:`decode_edges`).
+
+The ONNX file carries ``lunarnav.kind = box_refiner`` and ``lunarnav.crop`` (``"W,H"``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from lunarnav_ml.errors import InputError
+
+KIND = "box_refiner"
+CROPS_NAME = "crops"
+EDGES_NAME = "edges"
+CROP_W, CROP_H = 128, 64
+DEFAULT_BOX_REFINER = Path(__file__).resolve().parents[1] / "weights" / "box_refiner.onnx"
+
+
+def crop_frames(boxes_xywh: np.ndarray) -> np.ndarray:
+    """Each box's crop in the image: x0, y0, width, height, px.
+
+    Shape:
+        boxes_xywh: (K, 4). Returns (K, 4) float64.
+    """
+    b = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
+    w_c, h_c = 1.5 * b[:, 2], 1.5 * b[:, 3] + 0.15 * b[:, 2]
+    return np.column_stack([b[:, 0] + b[:, 2] / 2 - w_c / 2, b[:, 1] + b[:, 3] / 2 - h_c / 2,
+                            w_c, h_c])
+
+
+def cut_crops(gray: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """The crops of ``frames`` (:func:`crop_frames`) resampled to ``CROP_H`` x ``CROP_W``
+    (area averaging when shrinking, bilinear when enlarging; 0 outside the image).
+
+    Shape:
+        gray: (H, W) uint8; frames: (K, 4). Returns (K, CROP_H, CROP_W) uint8.
+    """
+    out = np.zeros((len(frames), CROP_H, CROP_W), np.uint8)
+    for k, (x0, y0, w_c, h_c) in enumerate(np.asarray(frames, dtype=np.float64)):
+        to_crop = np.array([[CROP_W / w_c, 0.0, -x0 * CROP_W / w_c],
+                            [0.0, CROP_H / h_c, -y0 * CROP_H / h_c]], np.float32)
+        flags = cv2.INTER_AREA if w_c > CROP_W else cv2.INTER_LINEAR
+        out[k] = cv2.warpAffine(gray, to_crop, (CROP_W, CROP_H), flags=flags,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out
+
+
+def normalize_crops(crops: np.ndarray) -> np.ndarray:
+    """The net's input: each crop scaled to [0, 1], less its mean, over its spread (+ 0.02).
+
+    Shape:
+        crops: (K, CROP_H, CROP_W) uint8. Returns (K, 1, CROP_H, CROP_W) float32.
+    """
+    x = np.asarray(crops, dtype=np.float32)[:, None] / 255.0
+    mean = x.mean(axis=(2, 3), keepdims=True)
+    return ((x - mean) / (x.std(axis=(2, 3), keepdims=True) + 0.02)).astype(np.float32)
+
+
+def encode_edges(boxes_xywh: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """Boxes as the net's target: left, top, right, bottom as fractions of their crop.
+
+    Shape:
+        boxes_xywh, frames: (K, 4). Returns (K, 4) float32.
+    """
+    b = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
+    f = np.asarray(frames, dtype=np.float64).reshape(-1, 4)
+    return np.column_stack([(b[:, 0] - f[:, 0]) / f[:, 2], (b[:, 1] - f[:, 1]) / f[:, 3],
+                            (b[:, 0] + b[:, 2] - f[:, 0]) / f[:, 2],
+                            (b[:, 1] + b[:, 3] - f[:, 1]) / f[:, 3]]).astype(np.float32)
+
+
+def decode_edges(edges: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`encode_edges`: boxes (x, y, w, h) in the image, px.
+
+    Shape:
+        edges, frames: (K, 4). Returns (K, 4) float64.
+    """
+    e = np.asarray(edges, dtype=np.float64).reshape(-1, 4)
+    f = np.asarray(frames, dtype=np.float64).reshape(-1, 4)
+    x0, y0 = f[:, 0] + e[:, 0] * f[:, 2], f[:, 1] + e[:, 1] * f[:, 3]
+    x1, y1 = f[:, 0] + e[:, 2] * f[:, 2], f[:, 1] + e[:, 3] * f[:, 3]
+    return np.column_stack([x0, y0, x1 - x0, y1 - y0])
+
+
+class BoxRefiner:
+    """Refine crater boxes with an exported box refiner (``lunarnav train-box-refiner``).
+
+    Args:
+        path: the ONNX file (default: the shipped ``lunarnav_ml/weights/box_refiner.onnx``).
+        threads: onnxruntime intra-op threads.
+
+    Raises:
+        InputError: missing, corrupt or foreign file (no ``lunarnav.kind = box_refiner``), or
+            inputs / outputs other than the ones the trainer exports.
+    """
+
+    def __init__(self, path: str | os.PathLike | None = None, threads: int = 1) -> None:
+        from lunarnav_ml.runtime.session import load_session
+
+        self.path = Path(path) if path is not None else DEFAULT_BOX_REFINER
+        self.session = load_session(self.path, threads, "box refiner",
+                                    "`lunarnav train-box-refiner`")
+        props = self.session.get_modelmeta().custom_metadata_map
+        if props.get("lunarnav.kind") != KIND:
+            raise InputError(f"{self.path}: not a box refiner (metadata lunarnav.kind is "
+                             f"{props.get('lunarnav.kind')!r}, expected {KIND!r}; write one with "
+                             "`lunarnav train-box-refiner`)")
+        if props.get("lunarnav.crop") != f"{CROP_W},{CROP_H}":
+            raise InputError(f"{self.path}: metadata lunarnav.crop is "
+                             f"{props.get('lunarnav.crop')!r}; this version reads "
+                             f"'{CROP_W},{CROP_H}' crops")
+        ins = {i.name for i in self.session.get_inputs()}
+        outs = {o.name for o in self.session.get_outputs()}
+        if ins != {CROPS_NAME} or EDGES_NAME not in outs:
+            raise InputError(f"{self.path}: expected input '{CROPS_NAME}' and output "
+                             f"'{EDGES_NAME}', got inputs {sorted(ins)}, outputs {sorted(outs)}")
+
+    def __call__(self, gray: np.ndarray, boxes_xywh: np.ndarray) -> np.ndarray:
+        """The boxes refined on the left image; a box the net would turn inside out (under
+        2 px wide or 1 px high) is kept as it was.
+
+        Raises:
+            InputError: ``gray`` is not an (H, W) uint8 image, or boxes that are not finite
+                (K, 4) with a positive width and height.
+
+        Shape:
+            gray: (H, W) uint8; boxes_xywh: (K, 4) px. Returns (K, 4) float64.
+        """
+        if gray.ndim != 2 or gray.dtype != np.uint8:
+            raise InputError(f"image: expected a uint8 gray image (H, W), got {gray.dtype} "
+                             f"{gray.shape}")
+        boxes = np.asarray(boxes_xywh, dtype=np.float64)
+        if boxes.size == 0:
+            return boxes.reshape(0, 4)
+        if boxes.ndim != 2 or boxes.shape[1] != 4 or not np.isfinite(boxes).all() \
+                or (boxes[:, 2:] <= 0).any():
+            raise InputError(f"boxes: expected finite (K, 4) x, y, w, h with w, h > 0, got "
+                             f"shape {boxes.shape}")
+        frames = crop_frames(boxes)
+        crops = normalize_crops(cut_crops(gray, frames))
+        edges = self.session.run([EDGES_NAME], {CROPS_NAME: crops})[0]
+        out = decode_edges(edges, frames)
+        bad = ~np.isfinite(out).all(axis=1) | (out[:, 2] < 2) | (out[:, 3] < 1)
+        out[bad] = boxes[bad]
+        return out
+
+    def refine_results(self, gray: np.ndarray, results: list[dict[str, Any]]
+                       ) -> list[dict[str, Any]]:
+        """COCO results of one image with each crater's (``category_id`` 1) box refined:
+        copies, in the same order; other classes as they were."""
+        idx = [k for k, r in enumerate(results) if r.get("category_id") == 1]
+        out = list(results)
+        if idx:
+            boxes = self(gray, np.array([results[k]["bbox"] for k in idx], dtype=np.float64))
+            for k, box in zip(idx, boxes, strict=True):
+                out[k] = {**results[k], "bbox": [float(v) for v in box]}
+        return out

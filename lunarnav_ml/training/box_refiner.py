@@ -1,0 +1,325 @@
+"""Train the crater-box refiner (:mod:`lunarnav_ml.geometry.boxrefine`):
+``lunarnav train-box-refiner``.
+
+Data: COCO sets with crater labels (category 1; non-ignored boxes at least 12 px wide and 6 px
+high), each optionally with a detector's results on it (COCO results JSON, e.g. the
+``detections.json`` that ``lunarnav eval --task detection --out D`` writes). Crops are cut around:
+- each crater detection (score >= 0.05) whose best label overlaps it at IoU >= 0.3: the
+  detection's own box and ``det_jitters`` copies with each edge moved by N(0, 0.03 x side), the
+  target that label's box. These teach the detector's own errors (too narrow, low at the bottom);
+- each label, ``label_jitters`` copies with each edge moved by N(0, 0.1 x side).
+
+The net: six 3 x 3 convolutions with batch norm and ReLU (stride 2 at four of them) to a
+128 x 2 x 4 map, two dense layers, four outputs (the edges as fractions of the crop). Smooth-L1
+loss (beta 0.02), AdamW under a one-cycle rate, batches of 256 with random mirroring and gain.
+The loop is plain PyTorch, as for the disparity refiner: one small model, crops in memory, a
+held-out error printed as it goes. The export is an ONNX file with a dynamic batch, read by
+:class:`~lunarnav_ml.geometry.boxrefine.BoxRefiner`.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from lunarnav_ml import __version__
+from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.geometry.boxrefine import (
+    CROP_H,
+    CROP_W,
+    CROPS_NAME,
+    EDGES_NAME,
+    KIND,
+    crop_frames,
+    cut_crops,
+    encode_edges,
+    normalize_crops,
+)
+from lunarnav_ml.geometry.report import annotations_path, read_gray
+from lunarnav_ml.training.refiner import _save
+from lunarnav_ml.utils.jsonfile import read_json_file
+
+MIN_SCORE = 0.05  # detections read
+MIN_IOU = 0.3  # a detection's best label must overlap it this much
+
+
+@dataclass(frozen=True)
+class BoxRefinerConfig:
+    """Crop and training settings (the shipped refiner's are the defaults)."""
+
+    label_jitters: int = 2
+    label_jitter: float = 0.1
+    det_jitters: int = 3
+    det_jitter: float = 0.03
+    epochs: int = 3
+    batch: int = 256
+    lr: float = 2e-3
+    val_fraction: float = 0.05
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "batch"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ConfigError(f"{name}: expected a positive integer, got {value!r}")
+        for name in ("label_jitters", "det_jitters"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise ConfigError(f"{name}: expected a non-negative integer, got {value!r}")
+        for name in ("label_jitter", "det_jitter"):
+            if not 0.0 <= getattr(self, name) < 0.5:
+                raise ConfigError(f"{name}: expected a fraction of the side in [0, 0.5), got "
+                                  f"{getattr(self, name)!r}")
+        if not 0.0 < self.lr < 1.0:
+            raise ConfigError(f"lr: expected a positive rate below 1, got {self.lr!r}")
+        if not 0.0 < self.val_fraction < 0.5:
+            raise ConfigError(f"val_fraction: expected a fraction in (0, 0.5), got "
+                              f"{self.val_fraction!r}")
+
+
+def _block(cin: int, cout: int, stride: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout),
+                         nn.ReLU(inplace=True))
+
+
+class BoxRefinerNet(nn.Module):
+    """Normalized crops (B, 1, 64, 128) -> box edges (B, 4) as fractions of the crop."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.features = nn.Sequential(_block(1, 16, 2), _block(16, 24, 1), _block(24, 48, 2),
+                                      _block(48, 64, 2), _block(64, 96, 2), _block(96, 128, 2))
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(128 * (CROP_H // 32) * (CROP_W // 32),
+                                                          128),
+                                  nn.ReLU(inplace=True), nn.Linear(128, 4))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x))
+
+
+@dataclass
+class BoxCrops:
+    """Training crops (N, 64, 128) uint8 and their targets (N, 4) float32."""
+
+    crops: np.ndarray
+    edges: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.crops)
+
+
+def _label_boxes(anns: list[dict[str, Any]], path: Path) -> dict[int, np.ndarray]:
+    """Kept crater label boxes per image id, checked."""
+    out: dict[int, list[list[float]]] = {}
+    for a in anns:
+        if a.get("category_id") != 1 or a.get("ignore") or a.get("iscrowd"):
+            continue
+        box = a.get("bbox")
+        if not (isinstance(box, list) and len(box) == 4
+                and all(isinstance(v, int | float) and np.isfinite(v) for v in box)):
+            raise InputError(f"{path}: annotation {a.get('id')}: bbox: expected 4 finite numbers, "
+                             f"got {box!r}")
+        if box[2] >= 12 and box[3] >= 6:
+            out.setdefault(a["image_id"], []).append(box)
+    return {k: np.asarray(v, dtype=np.float64) for k, v in out.items()}
+
+
+def _detection_boxes(path: Path) -> dict[int, np.ndarray]:
+    """Crater detections (score >= MIN_SCORE) per image id, checked."""
+    out: dict[int, list[list[float]]] = {}
+    for k, d in enumerate(read_json_file(path, "COCO results", list)):
+        if not isinstance(d, dict) or d.get("category_id") != 1 \
+                or float(d.get("score", 1.0)) < MIN_SCORE:
+            continue
+        box = d.get("bbox")
+        if not (isinstance(box, list) and len(box) == 4
+                and all(isinstance(v, int | float) and np.isfinite(v) for v in box)
+                and box[2] > 0 and box[3] > 0):
+            raise InputError(f"{path}: result {k}: bbox: expected 4 finite numbers with a "
+                             f"positive width and height, got {box!r}")
+        out.setdefault(int(d["image_id"]), []).append(box)
+    return {k: np.asarray(v, dtype=np.float64) for k, v in out.items()}
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of every box in ``a`` with every box in ``b`` (x, y, w, h).
+
+    Shape:
+        a: (K, 4); b: (M, 4). Returns (K, M).
+    """
+    a, b = a[:, None, :], b[None, :, :]
+    iw = np.clip(np.minimum(a[..., 0] + a[..., 2], b[..., 0] + b[..., 2])
+                 - np.maximum(a[..., 0], b[..., 0]), 0, None)
+    ih = np.clip(np.minimum(a[..., 1] + a[..., 3], b[..., 1] + b[..., 3])
+                 - np.maximum(a[..., 1], b[..., 1]), 0, None)
+    inter = iw * ih
+    return inter / (a[..., 2] * a[..., 3] + b[..., 2] * b[..., 3] - inter)
+
+
+def jitter_boxes(boxes: np.ndarray, frac: float, rng: np.random.Generator) -> np.ndarray:
+    """``boxes`` with each edge moved by N(0, ``frac`` x its side); a box turned narrower than
+    4 px or lower than 2 px is kept as it was.
+
+    Shape:
+        boxes: (K, 4) x, y, w, h. Returns (K, 4).
+    """
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    e = rng.normal(0.0, frac, (len(b), 4)) * b[:, [2, 2, 3, 3]]
+    x0, x1 = b[:, 0] + e[:, 0], b[:, 0] + b[:, 2] + e[:, 1]
+    y0, y1 = b[:, 1] + e[:, 2], b[:, 1] + b[:, 3] + e[:, 3]
+    out = np.column_stack([x0, y0, x1 - x0, y1 - y0])
+    bad = (out[:, 2] < 4) | (out[:, 3] < 2)
+    out[bad] = b[bad]
+    return out
+
+
+def build_crops(datasets: Sequence[str | Path], detections: Sequence[str | Path | None],
+                config: BoxRefinerConfig = BoxRefinerConfig(), progress: bool = True
+                ) -> BoxCrops:
+    """The training crops of ``datasets`` (each with its detector results or None)."""
+    if len(detections) != len(datasets):
+        raise ConfigError(f"detections: one results file (or None) per set: {len(datasets)} "
+                          f"set(s), {len(detections)} file(s)")
+    rng = np.random.default_rng(config.seed)
+    crops, edges = [], []
+    for dataset, det_path in zip(datasets, detections, strict=True):
+        path = annotations_path(dataset)
+        coco = read_json_file(path, "COCO annotations", dict)
+        labels = _label_boxes(coco.get("annotations", []), path)
+        dets = _detection_boxes(Path(det_path)) if det_path is not None else {}
+        images = [im for im in coco.get("images", []) if im.get("id") in labels]
+        for im in tqdm(images, desc=f"crops {Path(dataset).name}", disable=not progress):
+            lab = labels[im["id"]]
+            boxes, targets = [jitter_boxes(lab, config.label_jitter, rng)
+                              for _ in range(config.label_jitters)], [lab] * config.label_jitters
+            det = dets.get(im["id"])
+            if det is not None:
+                iou = box_iou(det, lab)
+                keep = iou.max(axis=1) >= MIN_IOU
+                det, matched = det[keep], lab[iou.argmax(axis=1)[keep]]
+                boxes += [det] + [jitter_boxes(det, config.det_jitter, rng)
+                                  for _ in range(config.det_jitters)]
+                targets += [matched] * (1 + config.det_jitters)
+            box, target = np.concatenate(boxes), np.concatenate(targets)
+            frames = crop_frames(box)
+            crops.append(cut_crops(read_gray(path.parent, im["file_name"]), frames))
+            edges.append(encode_edges(target, frames))
+    if not crops:
+        raise InputError(f"no crater label of 12 x 6 px or more in {[str(d) for d in datasets]}")
+    return BoxCrops(np.concatenate(crops), np.concatenate(edges))
+
+
+@dataclass(frozen=True)
+class BoxRefinerReport:
+    """Held-out crops' mean absolute edge error as fractions of the crop, before (the box the
+    crop was cut around) and after the net."""
+
+    n_train: int
+    n_val: int
+    input_l1: float
+    refined_l1: float
+    steps: int
+    seconds: float
+
+
+def _input_edges(n: int) -> np.ndarray:
+    """The edges of the box a crop was cut around, in its own frame (the same for every crop
+    horizontally: 1/6 and 5/6; vertically they depend on the box's aspect, so the held-out
+    "before" figure is horizontal only)."""
+    return np.tile(np.array([1 / 6, 5 / 6], np.float32), (n, 1))
+
+
+def train_box_refiner(crops: BoxCrops, config: BoxRefinerConfig = BoxRefinerConfig(),
+                      log: Callable[[str], None] | None = print
+                      ) -> tuple[BoxRefinerNet, BoxRefinerReport]:
+    """Train a :class:`BoxRefinerNet` on ``crops`` (a held-out fraction measures it)."""
+    if len(crops) < 2 * config.batch:
+        raise InputError(f"{len(crops)} training crops: need at least {2 * config.batch}")
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    perm = rng.permutation(len(crops))
+    n_val = max(1, int(len(crops) * config.val_fraction))
+    val, train = perm[:n_val], perm[n_val:]
+    net = BoxRefinerNet()
+    opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=1e-4)
+    per_epoch = len(train) // config.batch
+    steps = config.epochs * per_epoch
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=steps,
+                                                pct_start=0.1)
+    t0 = time.perf_counter()
+
+    def held_out() -> float:
+        net.eval()
+        with torch.no_grad():
+            pred = torch.cat([net(torch.from_numpy(normalize_crops(crops.crops[val[i:i + 1024]])))
+                              for i in range(0, len(val), 1024)]).numpy()
+        net.train()
+        return float(np.abs(pred - crops.edges[val]).mean())
+
+    step = 0
+    for epoch in range(config.epochs):
+        order = rng.permutation(train)
+        for i in range(per_epoch):
+            idx = np.sort(order[i * config.batch:(i + 1) * config.batch])
+            x = normalize_crops(crops.crops[idx])
+            y = crops.edges[idx].copy()
+            flip = rng.random(len(idx)) < 0.5
+            x[flip] = x[flip, :, :, ::-1]
+            y[flip] = np.column_stack([1 - y[flip, 2], y[flip, 1], 1 - y[flip, 0], y[flip, 3]])
+            x *= np.exp(rng.normal(0.0, 0.2, (len(idx), 1, 1, 1))).astype(np.float32)
+            loss = nn.functional.smooth_l1_loss(net(torch.from_numpy(np.ascontiguousarray(x))),
+                                                torch.from_numpy(y), beta=0.02)
+            if not torch.isfinite(loss):
+                raise InputError(f"training diverged at step {step + 1} (loss {loss.item()})")
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+            step += 1
+            if log and step % 100 == 0:
+                log(f"epoch {epoch + 1}/{config.epochs}  step {step}/{steps}  "
+                    f"{time.perf_counter() - t0:.0f} s  loss {loss.item():.4f}")
+        if log:
+            log(f"epoch {epoch + 1}/{config.epochs}: held-out mean |edge error| {held_out():.4f} "
+                "of the crop")
+    before = float(np.abs(_input_edges(n_val) - crops.edges[val][:, [0, 2]]).mean())
+    after = held_out()
+    net.eval()
+    return net, BoxRefinerReport(len(train), n_val, before, after, steps,
+                                 time.perf_counter() - t0)
+
+
+def export_box_refiner(net: BoxRefinerNet, path: str | Path, extra: dict | None = None,
+                       opset: int = 17) -> Path:
+    """Write ``net`` as an ONNX box refiner (dynamic batch) with its metadata, atomically."""
+    from lunarnav_ml.export.onnx_export import trace_module
+
+    axes = {CROPS_NAME: {0: "batch"}, EDGES_NAME: {0: "batch"}}
+    model = trace_module(net.eval(), torch.zeros(1, 1, CROP_H, CROP_W), CROPS_NAME, EDGES_NAME,
+                         axes, opset)
+    props = {"lunarnav.kind": KIND, "lunarnav.crop": f"{CROP_W},{CROP_H}",
+             "lunarnav.project_version": __version__, **(extra or {})}
+    return _save(model, props, path)
+
+
+def run(datasets: Sequence[str | Path], detections: Sequence[str | Path | None],
+        out: str | Path, config: BoxRefinerConfig, progress: bool = True) -> BoxRefinerReport:
+    """Crops, training and export: what ``lunarnav train-box-refiner`` does."""
+    crops = build_crops(datasets, detections, config, progress)
+    print(f"{len(crops)} crops from {len(datasets)} set(s)", flush=True)
+    net, report = train_box_refiner(crops, config, log=(lambda s: print(s, flush=True)))
+    meta = {"lunarnav.training": json.dumps({
+        "datasets": [str(d) for d in datasets],
+        "detections": [None if d is None else str(d) for d in detections],
+        **asdict(config), **asdict(report)})}
+    export_box_refiner(net, out, meta)
+    return report

@@ -1,0 +1,246 @@
+"""The crater-box refiner: crop geometry, the shipped file, errors, training, export and CLI."""
+
+import json
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from lunarnav_ml.cli import main
+from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.geometry.boxrefine import (
+    CROP_H,
+    CROP_W,
+    DEFAULT_BOX_REFINER,
+    BoxRefiner,
+    crop_frames,
+    cut_crops,
+    decode_edges,
+    encode_edges,
+    normalize_crops,
+)
+from lunarnav_ml.geometry.report import geometry_report
+from lunarnav_ml.training.box_refiner import (
+    BoxRefinerConfig,
+    BoxRefinerNet,
+    box_iou,
+    build_crops,
+    export_box_refiner,
+    jitter_boxes,
+    train_box_refiner,
+)
+from tests.geometry.test_report import _write_dataset
+
+
+def test_crop_frame_encode_decode():
+    rng = np.random.default_rng(0)
+    boxes = np.column_stack([rng.uniform(0, 900, 20), rng.uniform(0, 900, 20),
+                             rng.uniform(12, 400, 20), rng.uniform(6, 80, 20)])
+    frames = crop_frames(boxes)
+    edges = encode_edges(boxes, frames)
+    np.testing.assert_allclose(edges[:, [0, 2]], np.tile([1 / 6, 5 / 6], (20, 1)), atol=1e-6)
+    assert (edges[:, 1] > 0).all() and (edges[:, 3] < 1).all()  # vertical room around the box
+    np.testing.assert_allclose(decode_edges(edges, frames), boxes, rtol=1e-5, atol=1e-3)
+
+
+def test_cut_crops_put_the_box_in_the_middle():
+    img = np.zeros((300, 400), np.uint8)
+    img[100:130, 120:240] = 200  # a bright box 120 x 30 px
+    crop = cut_crops(img, crop_frames(np.array([[120.0, 100.0, 120.0, 30.0]])))[0]
+    assert crop.shape == (CROP_H, CROP_W)
+    cols = np.flatnonzero(crop.max(axis=0) > 100)
+    assert abs(cols[0] - CROP_W / 6) <= 1.5 and abs(cols[-1] + 1 - 5 * CROP_W / 6) <= 1.5
+    x = normalize_crops(crop[None])
+    assert x.shape == (1, 1, CROP_H, CROP_W) and abs(float(x.mean())) < 1e-4
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    return BoxRefiner()
+
+
+@pytest.fixture(scope="module")
+def renders(tmp_path_factory):
+    """Two frames of the paper-stereo grid at 1024 px (left views only), seeds no training
+    used."""
+    from lunarnav_ml.synth.generate import generate_dataset
+
+    root = tmp_path_factory.mktemp("boxref_renders")
+    path = generate_dataset(root, seed=77000001, image_size=1024, protocol="paper-stereo",
+                            items=[700, 1500], progress=False, stereo=False)
+    return path
+
+
+def test_shipped_refiner_moves_jittered_boxes_onto_the_craters(shipped, renders):
+    """The shipped net on renders it never saw: boxes jittered by 15 % of their side come
+    back nearer the labelled ones on average (a net that ignores the image, reads it mirrored
+    or decodes the edges wrongly does not)."""
+    import cv2
+
+    coco = json.loads(renders.read_text())
+    rng = np.random.default_rng(0)
+    before, after = [], []
+    for im in coco["images"]:
+        labels = np.array([a["bbox"] for a in coco["annotations"]
+                           if a["image_id"] == im["id"] and a["category_id"] == 1
+                           and not a.get("ignore") and a["bbox"][2] >= 12 and a["bbox"][3] >= 6])
+        truth = np.repeat(labels, 8, axis=0)
+        jittered = jitter_boxes(truth, 0.15, rng)
+        refined = shipped(cv2.imread(str(renders.parent / im["file_name"]), 0), jittered)
+        assert refined.shape == truth.shape and np.isfinite(refined).all()
+        before += list(np.diag(box_iou(jittered, truth)))
+        after += list(np.diag(box_iou(refined, truth)))
+    assert len(before) >= 40 and np.mean(after) > np.mean(before) + 0.02, (np.mean(before),
+                                                                          np.mean(after))
+
+
+def test_refiner_inputs_and_results(shipped):
+    gray = np.zeros((64, 96), np.uint8)
+    assert shipped(gray, np.zeros((0, 4))).shape == (0, 4)
+    for bad in (np.array([[1.0, 2.0, np.nan, 4.0]]), np.array([[1.0, 2.0, -3.0, 4.0]]),
+                np.ones((2, 3))):
+        with pytest.raises(InputError, match="boxes: expected finite"):
+            shipped(gray, bad)
+    with pytest.raises(InputError, match="image: expected a uint8 gray image"):
+        shipped(np.zeros((64, 96, 3), np.uint8), np.array([[10.0, 10.0, 40.0, 10.0]]))
+    results = [{"image_id": 1, "category_id": 2, "bbox": [1, 2, 3, 4], "score": 0.9},
+               {"image_id": 1, "category_id": 1, "bbox": [10.0, 10.0, 40.0, 10.0], "score": 0.8}]
+    out = shipped.refine_results(gray, results)
+    assert out[0] is results[0] and out[1]["score"] == 0.8 and len(out[1]["bbox"]) == 4
+    assert results[1]["bbox"] == [10.0, 10.0, 40.0, 10.0]  # the input is not changed
+
+
+def _export(tmp_path, name, **props):
+    torch.manual_seed(0)
+    return export_box_refiner(BoxRefinerNet(), tmp_path / name, props)
+
+
+def test_refiner_file_errors(tmp_path):
+    with pytest.raises(InputError, match="nope.onnx: box refiner not found"):
+        BoxRefiner(tmp_path / "nope.onnx")
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"\x08\x01garbage")
+    with pytest.raises(InputError, match="bad.onnx: not a loadable ONNX model"):
+        BoxRefiner(bad)
+    path = _export(tmp_path, "foreign.onnx")
+    model = onnx.load(str(path))
+    del model.metadata_props[:]
+    onnx.save(model, str(path))
+    with pytest.raises(InputError, match="foreign.onnx: not a box refiner"):
+        BoxRefiner(path)
+    path = _export(tmp_path, "crop.onnx", **{"lunarnav.crop": "64,64"})
+    with pytest.raises(InputError, match="crop.onnx: metadata lunarnav.crop"):
+        BoxRefiner(path)
+    with pytest.raises(InputError, match="not a box refiner"):
+        BoxRefiner(DEFAULT_BOX_REFINER.with_name("disparity_refiner.onnx"))
+
+
+def test_export_matches_torch(tmp_path):
+    ref = BoxRefiner(_export(tmp_path, "b.onnx"))
+    torch.manual_seed(0)
+    net = BoxRefinerNet().eval()  # the same seed as _export: the same weights
+    rng = np.random.default_rng(2)
+    gray = rng.integers(0, 256, (200, 300)).astype(np.uint8)
+    boxes = np.array([[50.0, 60.0, 120.0, 25.0], [10.0, 150.0, 40.0, 12.0]])
+    frames = crop_frames(boxes)
+    with torch.no_grad():
+        edges = net(torch.from_numpy(normalize_crops(cut_crops(gray, frames)))).numpy()
+    want = decode_edges(edges, frames)
+    ok = (want[:, 2] >= 2) & (want[:, 3] >= 1)  # others are kept as given
+    np.testing.assert_allclose(ref(gray, boxes)[ok], want[ok], rtol=1e-4, atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def labelled_set(tmp_path_factory, crater_scene):
+    root = tmp_path_factory.mktemp("boxref_ds")
+    _write_dataset(root, crater_scene)
+    x, y, w, h = (float(v) for v in crater_scene.box)
+    dets = [{"image_id": 1, "category_id": 1, "bbox": [x + 0.1 * w, y, 0.8 * w, h], "score": 0.9},
+            {"image_id": 1, "category_id": 1, "bbox": [0.0, 0.0, 20.0, 8.0], "score": 0.9},
+            {"image_id": 1, "category_id": 1, "bbox": [x, y, w, h], "score": 0.01}]
+    (root / "detections.json").write_text(json.dumps(dets))
+    return root
+
+
+SMALL = {"label_jitters": 24, "det_jitters": 24, "batch": 8, "epochs": 6, "lr": 3e-3,
+         "val_fraction": 0.1}
+
+
+def test_crops_from_labels_and_detections(labelled_set):
+    cfg = BoxRefinerConfig(**SMALL)
+    labels_only = build_crops([labelled_set], [None], cfg, progress=False)
+    both = build_crops([labelled_set], [labelled_set / "detections.json"], cfg, progress=False)
+    n_labels = len(labels_only) // cfg.label_jitters  # the 1 m crater is a label too
+    # the detection overlapping the crater (its own box and its jitters) adds crops; the one
+    # off the crater and the one under the score floor do not
+    assert len(both) == len(labels_only) + 1 + cfg.det_jitters and n_labels == 2
+    assert both.crops.shape[1:] == (CROP_H, CROP_W) and both.edges.shape == (len(both), 4)
+    again = build_crops([labelled_set], [labelled_set / "detections.json"], cfg, progress=False)
+    assert np.array_equal(both.crops, again.crops) and np.array_equal(both.edges, again.edges)
+
+
+def test_training_learns_and_is_seeded(labelled_set):
+    cfg = BoxRefinerConfig(**SMALL)
+    crops = build_crops([labelled_set], [labelled_set / "detections.json"], cfg, progress=False)
+    net, report = train_box_refiner(crops, cfg, log=None)
+    assert report.n_val >= 1 and report.steps > 0
+    with torch.no_grad():
+        fitted = net(torch.from_numpy(normalize_crops(crops.crops))).numpy()
+    fit_err = np.abs(fitted - crops.edges)[:, [0, 2]].mean()
+    input_err = np.abs(np.array([1 / 6, 5 / 6]) - crops.edges[:, [0, 2]]).mean()
+    assert fit_err < 0.8 * input_err  # it learns where the edges lie (a broken target does not)
+    net2, _ = train_box_refiner(crops, cfg, log=None)
+    for a, b in zip(net.parameters(), net2.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_config_and_data_checks(labelled_set, tmp_path):
+    for bad in ({"epochs": 0}, {"label_jitter": 0.7}, {"det_jitters": -1}, {"lr": 0.0},
+                {"val_fraction": 0.6}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            BoxRefinerConfig(**bad)
+    with pytest.raises(ConfigError, match="one results file"):
+        build_crops([labelled_set], [], progress=False)
+    (tmp_path / "bad.json").write_text(json.dumps(
+        [{"image_id": 1, "category_id": 1, "bbox": [1, 2, "x", 4], "score": 0.5}]))
+    with pytest.raises(InputError, match="bad.json: result 0: bbox"):
+        build_crops([labelled_set], [tmp_path / "bad.json"], progress=False)
+    crops = build_crops([labelled_set], [None], BoxRefinerConfig(label_jitters=1),
+                        progress=False)
+    with pytest.raises(InputError, match="training crops: need at least"):
+        train_box_refiner(crops, BoxRefinerConfig(), log=None)
+
+
+def test_cli_train_then_eval_and_errors(labelled_set, tmp_path, capsys):
+    out = tmp_path / "b.onnx"
+    dets = labelled_set / "detections.json"
+    assert main(["train-box-refiner", str(labelled_set), "--detections", str(dets),
+                 "--out", str(out), "--epochs", "1", "--batch", "4", "--label-jitters", "8",
+                 "--quiet", "--threads", "1"]) == 0
+    assert "held-out mean |edge error|" in capsys.readouterr().out
+    BoxRefiner(out)
+    for extra, want in ((["--box-refiner", str(out)], str(out)), ([], str(DEFAULT_BOX_REFINER)),
+                        (["--no-box-refiner"], None)):
+        assert main(["eval", "--task", "geometry", "--gt", str(labelled_set), "--test-results",
+                     str(dets), *extra, "--out", str(tmp_path / "g"), "--no-progress"]) == 0
+        metrics = json.loads((tmp_path / "g" / "geometry_metrics.json").read_text())
+        assert metrics["settings"]["box_refiner"] == want
+    assert main(["eval", "--task", "geometry", "--gt", str(labelled_set), "--out",
+                 str(tmp_path / "g"), "--no-progress"]) == 0  # labelled boxes: not refined
+    assert json.loads((tmp_path / "g" / "geometry_metrics.json").read_text())[
+        "settings"]["box_refiner"] is None
+    capsys.readouterr()
+    bad = tmp_path / "bad.onnx"
+    assert main(["train-box-refiner", str(labelled_set), "--detections", str(dets), "none",
+                 "--out", str(bad), "--quiet"]) == 2
+    assert main(["train-box-refiner", str(labelled_set), "--detections",
+                 str(tmp_path / "missing.json"), "--out", str(bad), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "one results file" in err[0] and "missing.json" in err[1]
+    assert not bad.exists()
+
+
+def test_report_box_refiner_needs_detections(labelled_set, tmp_path, shipped):
+    with pytest.raises(InputError, match="box_refiner: moves a detector's boxes"):
+        geometry_report(labelled_set, tmp_path, box_refiner=shipped)
