@@ -144,9 +144,10 @@ class BoxRefiner:
         Shape:
             gray: (H, W) uint8; boxes_xywh: (K, 4) px. Returns (K, 4) float64.
         """
-        if gray.ndim != 2 or gray.dtype != np.uint8:
-            raise InputError(f"image: expected a uint8 gray image (H, W), got {gray.dtype} "
-                             f"{gray.shape}")
+        if not isinstance(gray, np.ndarray) or gray.ndim != 2 or gray.dtype != np.uint8:
+            raise InputError(f"image: expected a uint8 gray image (H, W), got "
+                             f"{getattr(gray, 'dtype', type(gray).__name__)} "
+                             f"{getattr(gray, 'shape', '')}")
         boxes = np.asarray(boxes_xywh, dtype=np.float64)
         if boxes.size == 0:
             return boxes.reshape(0, 4)

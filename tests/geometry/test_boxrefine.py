@@ -102,8 +102,9 @@ def test_refiner_inputs_and_results(shipped):
                 np.ones((2, 3))):
         with pytest.raises(InputError, match="boxes: expected finite"):
             shipped(gray, bad)
-    with pytest.raises(InputError, match="image: expected a uint8 gray image"):
-        shipped(np.zeros((64, 96, 3), np.uint8), np.array([[10.0, 10.0, 40.0, 10.0]]))
+    for image in (np.zeros((64, 96, 3), np.uint8), None):
+        with pytest.raises(InputError, match="image: expected a uint8 gray image"):
+            shipped(image, np.array([[10.0, 10.0, 40.0, 10.0]]))
     results = [{"image_id": 1, "category_id": 2, "bbox": [1, 2, 3, 4], "score": 0.9},
                {"image_id": 1, "category_id": 1, "bbox": [10.0, 10.0, 40.0, 10.0], "score": 0.8}]
     out = shipped.refine_results(gray, results)
