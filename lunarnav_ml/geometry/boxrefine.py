@@ -113,16 +113,11 @@ class BoxRefiner:
     """
 
     def __init__(self, path: str | os.PathLike | None = None, threads: int = 1) -> None:
-        from lunarnav_ml.runtime.session import load_session
+        from lunarnav_ml.runtime.session import load_tool_session
 
         self.path = Path(path) if path is not None else DEFAULT_BOX_REFINER
-        self.session = load_session(self.path, threads, "box refiner",
-                                    "`lunarnav train-box-refiner`")
-        props = self.session.get_modelmeta().custom_metadata_map
-        if props.get("lunarnav.kind") != KIND:
-            raise InputError(f"{self.path}: not a box refiner (metadata lunarnav.kind is "
-                             f"{props.get('lunarnav.kind')!r}, expected {KIND!r}; write one with "
-                             "`lunarnav train-box-refiner`)")
+        self.session, props = load_tool_session(self.path, threads, KIND, "box refiner",
+                                                "`lunarnav train-box-refiner`")
         if props.get("lunarnav.crop") != f"{CROP_W},{CROP_H}":
             raise InputError(f"{self.path}: metadata lunarnav.crop is "
                              f"{props.get('lunarnav.crop')!r}; this version reads "

@@ -205,16 +205,11 @@ class DisparityRefiner:
     def __init__(self, path: str | os.PathLike | None = None, threads: int = 1, *,
                  max_disparity_px: float | None | str = "file",
                  passes: int | None = None) -> None:
-        from lunarnav_ml.runtime.session import load_session
+        from lunarnav_ml.runtime.session import load_tool_session
 
         self.path = Path(path) if path is not None else DEFAULT_REFINER
-        self.session = load_session(self.path, threads, "disparity refiner",
-                                    "`lunarnav train-refiner`")
-        props = self.session.get_modelmeta().custom_metadata_map
-        if props.get("lunarnav.kind") != KIND:
-            raise InputError(f"{self.path}: not a disparity refiner (metadata lunarnav.kind is "
-                             f"{props.get('lunarnav.kind')!r}, expected {KIND!r}; write one with "
-                             "`lunarnav train-refiner`)")
+        self.session, props = load_tool_session(self.path, threads, KIND, "disparity refiner",
+                                                "`lunarnav train-refiner`")
         try:
             self.receptive_px = int(props["lunarnav.receptive_px"])
         except (KeyError, ValueError):

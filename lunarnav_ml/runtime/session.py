@@ -49,6 +49,23 @@ def load_session(path: Path, threads: int, what: str, writer: str) -> ort.Infere
                          f"expected a file written by {writer}): {first}") from None
 
 
+def load_tool_session(path: Path, threads: int, kind: str, what: str, writer: str
+                      ) -> tuple[ort.InferenceSession, dict[str, str]]:
+    """:func:`load_session` of a geometry tool's file (a refiner), checked to carry
+    ``lunarnav.kind`` = ``kind``; the session and the file's metadata.
+
+    Raises:
+        InputError: as :func:`load_session`, or "``path``: not a ``what``" for another kind.
+    """
+    session = load_session(path, threads, what, writer)
+    props = session.get_modelmeta().custom_metadata_map
+    if props.get("lunarnav.kind") != kind:
+        raise InputError(f"{path}: not a {what} (metadata lunarnav.kind is "
+                         f"{props.get('lunarnav.kind')!r}, expected {kind!r}; write one with "
+                         f"{writer})")
+    return session, props
+
+
 def open_session(path: str | os.PathLike, threads: int = 1
                  ) -> tuple[ort.InferenceSession, md.ModelMetadata]:
     """Load ``path`` on the CPU execution provider and read its lunarnav metadata.

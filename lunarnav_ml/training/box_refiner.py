@@ -45,7 +45,7 @@ from lunarnav_ml.geometry.boxrefine import (
     normalize_crops,
 )
 from lunarnav_ml.geometry.report import annotations_path, read_gray
-from lunarnav_ml.training.refiner import _save
+from lunarnav_ml.training.refiner import _save, seeded_split
 from lunarnav_ml.utils.jsonfile import read_json_file
 
 MIN_SCORE = 0.05  # detections read
@@ -244,11 +244,8 @@ def train_box_refiner(crops: BoxCrops, config: BoxRefinerConfig = BoxRefinerConf
     """Train a :class:`BoxRefinerNet` on ``crops`` (a held-out fraction measures it)."""
     if len(crops) < 2 * config.batch:
         raise InputError(f"{len(crops)} training crops: need at least {2 * config.batch}")
-    torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)
-    perm = rng.permutation(len(crops))
-    n_val = max(1, int(len(crops) * config.val_fraction))
-    val, train = perm[:n_val], perm[n_val:]
+    rng, val, train = seeded_split(len(crops), config.val_fraction, config.seed)
+    n_val = len(val)
     net = BoxRefinerNet()
     opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=1e-4)
     per_epoch = len(train) // config.batch

@@ -152,8 +152,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_train_box_refiner(args: argparse.Namespace) -> int:
     """Crops, training and ONNX export of the box refiner (``--out`` written atomically)."""
-    import torch
-
     from lunarnav_ml.training.box_refiner import BoxRefinerConfig, run
     from lunarnav_ml.utils.atomic import check_destination
 
@@ -165,10 +163,7 @@ def run_train_box_refiner(args: argparse.Namespace) -> int:
         raise ConfigError(f"--detections: one results file (or 'none') per set: "
                           f"{len(args.datasets)} set(s), {len(detections)} given")
     check_destination(args.out)
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ConfigError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
+    set_torch_threads(args.threads)
     report = run(args.datasets, detections, args.out, config, progress=not args.quiet)
     print(f"lunarnav train-box-refiner: {report.n_train} training crops, {report.steps} steps "
           f"in {report.seconds:.0f} s; held-out mean |edge error| {report.refined_l1:.4f} of "
@@ -177,10 +172,18 @@ def run_train_box_refiner(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_train_refiner(args: argparse.Namespace) -> int:
-    """Crops, training and ONNX export of the disparity refiner (``--out`` written atomically)."""
+def set_torch_threads(threads: int | None) -> None:
+    """``torch.set_num_threads(threads)`` (None: torch's default), checked."""
     import torch
 
+    if threads is not None:
+        if threads < 1:
+            raise ConfigError(f"--threads must be >= 1, got {threads}")
+        torch.set_num_threads(threads)
+
+
+def run_train_refiner(args: argparse.Namespace) -> int:
+    """Crops, training and ONNX export of the disparity refiner (``--out`` written atomically)."""
     from lunarnav_ml.training.refiner import RefinerConfig, run
     from lunarnav_ml.utils.atomic import check_destination
 
@@ -188,10 +191,7 @@ def run_train_refiner(args: argparse.Namespace) -> int:
              for k in ("channels", "steps", "batch", "lr", "seed", "max_disparity_px")}
     config = RefinerConfig(**{k: v for k, v in given.items() if v is not None})
     check_destination(args.out)
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ConfigError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
+    set_torch_threads(args.threads)
     report = run(args.datasets, args.out, config, progress=not args.quiet)
     print(f"lunarnav train-refiner: {report.n_train} training crops, {report.steps} steps in "
           f"{report.seconds:.0f} s; held-out L1 {report.refined_l1_px:.4f} px (SGBM "

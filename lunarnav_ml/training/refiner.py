@@ -238,16 +238,23 @@ class RefinerReport:
     seconds: float
 
 
+def seeded_split(n: int, val_fraction: float, seed: int
+                 ) -> tuple[np.random.Generator, np.ndarray, np.ndarray]:
+    """Seed torch with ``seed`` and split ``n`` items at random: the generator (to go on
+    drawing batches from), a held-out ``val_fraction`` (at least one) and the rest."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(n)
+    n_val = max(1, int(n * val_fraction))
+    return rng, perm[:n_val], perm[n_val:]
+
+
 def train_refiner(crops: Crops, config: RefinerConfig = RefinerConfig(),
                   log: Callable[[str], None] | None = print) -> tuple[RefinerNet, RefinerReport]:
     """Train a :class:`RefinerNet` on ``crops`` (a held-out fraction measures it)."""
     if len(crops) < 2 * config.batch:
         raise InputError(f"{len(crops)} training crops: need at least {2 * config.batch}")
-    torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)
-    perm = rng.permutation(len(crops))
-    n_val = max(1, int(len(crops) * config.val_fraction))
-    val, train = perm[:n_val], perm[n_val:]
+    rng, val, train = seeded_split(len(crops), config.val_fraction, config.seed)
     net = RefinerNet(config.channels, config.dilations)
     opt = torch.optim.Adam(net.parameters(), config.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(

@@ -10,6 +10,7 @@ import pytest
 
 from lunarnav_ml.cli import main
 from lunarnav_ml.errors import InputError
+from lunarnav_ml.geometry.boxrefine import DEFAULT_BOX_REFINER
 from lunarnav_ml.geometry.refine import DEFAULT_REFINER
 from lunarnav_ml.runtime.cli import DEFAULT_WEIGHTS, read_camera
 from tests.geometry.geometry_scene import render_crater_scene
@@ -56,7 +57,8 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     assert best["lift"]["n_rim"] >= 8 and 0 <= best["lift"]["crest_fraction"] <= 1
     assert out["min_flank_rise_px"] == 0.12  # the hidden-rim test read to scale, by default
     assert cv2.imread(str(tmp_path / "overlay.jpg")).shape == (480, 640, 3)
-    assert set(out["timing_ms"]) == {"detect", "stereo", "craters"}
+    assert set(out["timing_ms"]) == {"detect", "box_refine", "stereo", "craters"}
+    assert out["box_refiner"] == str(DEFAULT_BOX_REFINER)  # on by default
     assert all(v > 0 for v in out["timing_ms"].values())
     assert "in 3D (detect " in capsys.readouterr().out
 
@@ -65,9 +67,10 @@ def test_an_onnx_model_runs_through_the_onboard_runtime(pair, onnx_path, tmp_pat
     root, _ = pair
     assert _run(root, "--weights", str(onnx_path), "--conf", "0.01", "--threads", "1",
                 "--sgbm-mode", "3way", "--lift-from", "fit", "--no-refiner",
-                "--out", str(tmp_path)) == 0
+                "--no-box-refiner", "--out", str(tmp_path)) == 0
     out = json.loads((tmp_path / "craters3d.json").read_text())
-    assert out["lift_from"] == "fit" and out["refiner"] is None
+    assert out["lift_from"] == "fit" and out["refiner"] is None and out["box_refiner"] is None
+    assert out["timing_ms"]["box_refine"] == 0.0
     assert not any(c["refined"] for c in out["craters"])
     assert out["sgbm"] == {"mode": "3way", "num_disparities": 80}  # sized to 640 px
     assert all(c["ok"] == ("center_m" in c) for c in out["craters"])
