@@ -45,7 +45,7 @@ from lunarnav_ml.geometry.boxrefine import (
     normalize_crops,
 )
 from lunarnav_ml.geometry.report import annotations_path, read_gray
-from lunarnav_ml.training.refiner import _save, seeded_split
+from lunarnav_ml.training.refiner import _save, optimizer_step, seeded_split
 from lunarnav_ml.utils.jsonfile import read_json_file
 
 MIN_SCORE = 0.05  # detections read
@@ -275,13 +275,8 @@ def train_box_refiner(crops: BoxCrops, config: BoxRefinerConfig = BoxRefinerConf
             x *= np.exp(rng.normal(0.0, 0.2, (len(idx), 1, 1, 1))).astype(np.float32)
             loss = nn.functional.smooth_l1_loss(net(torch.from_numpy(np.ascontiguousarray(x))),
                                                 torch.from_numpy(y), beta=0.02)
-            if not torch.isfinite(loss):
-                raise InputError(f"training diverged at step {step + 1} (loss {loss.item()})")
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            sched.step()
             step += 1
+            optimizer_step(loss, opt, sched, step)
             if log and step % 100 == 0:
                 log(f"epoch {epoch + 1}/{config.epochs}  step {step}/{steps}  "
                     f"{time.perf_counter() - t0:.0f} s  loss {loss.item():.4f}")

@@ -249,6 +249,18 @@ def seeded_split(n: int, val_fraction: float, seed: int
     return rng, perm[:n_val], perm[n_val:]
 
 
+def optimizer_step(loss: torch.Tensor, opt: torch.optim.Optimizer, sched: Any, step: int
+                   ) -> None:
+    """Back-propagate ``loss`` and step the optimizer and its schedule; InputError for a loss
+    that is not finite (the run diverged at ``step``)."""
+    if not torch.isfinite(loss):
+        raise InputError(f"training diverged at step {step} (loss {loss.item()})")
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    sched.step()
+
+
 def train_refiner(crops: Crops, config: RefinerConfig = RefinerConfig(),
                   log: Callable[[str], None] | None = print) -> tuple[RefinerNet, RefinerReport]:
     """Train a :class:`RefinerNet` on ``crops`` (a held-out fraction measures it)."""
@@ -272,12 +284,7 @@ def train_refiner(crops: Crops, config: RefinerConfig = RefinerConfig(),
 
     for step in range(1, config.steps + 1):
         loss, _ = _loss(net, crops, rng.choice(train, config.batch, replace=False))
-        if not torch.isfinite(loss):
-            raise InputError(f"training diverged at step {step} (loss {loss.item()})")
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
+        optimizer_step(loss, opt, sched, step)
         if log and (step % 500 == 0 or step == config.steps):
             base, refined = held_out()
             log(f"step {step}/{config.steps}  {time.perf_counter() - t0:.0f} s  train L1 "
