@@ -183,15 +183,27 @@ def jitter_boxes(boxes: np.ndarray, frac: float, rng: np.random.Generator) -> np
 
 
 def build_crops(datasets: Sequence[str | Path], detections: Sequence[str | Path | None],
-                config: BoxRefinerConfig = BoxRefinerConfig(), progress: bool = True
-                ) -> BoxCrops:
-    """The training crops of ``datasets`` (each with its detector results or None)."""
+                config: BoxRefinerConfig = BoxRefinerConfig(), progress: bool = True,
+                repeats: Sequence[int] | None = None) -> BoxCrops:
+    """The training crops of ``datasets`` (each with its detector results or None).
+
+    ``repeats`` (one per set, default 1) weighs a set in the mix: it gets ``repeats`` times as
+    many jittered label crops, and each of its matched detections ``repeats`` times as many
+    crops (its own box counting as one). A small set of real frames among thousands of renders
+    needs it.
+    """
     if len(detections) != len(datasets):
         raise ConfigError(f"detections: one results file (or None) per set: {len(datasets)} "
                           f"set(s), {len(detections)} file(s)")
+    repeats = [1] * len(datasets) if repeats is None else list(repeats)
+    if len(repeats) != len(datasets) or any(
+            not isinstance(r, int) or isinstance(r, bool) or r < 1 for r in repeats):
+        raise ConfigError(f"repeats: one positive integer per set ({len(datasets)}), got "
+                          f"{repeats!r}")
     rng = np.random.default_rng(config.seed)
     crops, edges = [], []
-    for dataset, det_path in zip(datasets, detections, strict=True):
+    for dataset, det_path, times in zip(datasets, detections, repeats, strict=True):
+        n_label, n_det = config.label_jitters * times, (1 + config.det_jitters) * times - 1
         path = annotations_path(dataset)
         coco = read_json_file(path, "COCO annotations", dict)
         labels = _label_boxes(coco.get("annotations", []), path)
@@ -199,16 +211,16 @@ def build_crops(datasets: Sequence[str | Path], detections: Sequence[str | Path 
         images = [im for im in coco.get("images", []) if im.get("id") in labels]
         for im in tqdm(images, desc=f"crops {Path(dataset).name}", disable=not progress):
             lab = labels[im["id"]]
-            boxes, targets = [jitter_boxes(lab, config.label_jitter, rng)
-                              for _ in range(config.label_jitters)], [lab] * config.label_jitters
+            boxes = [jitter_boxes(lab, config.label_jitter, rng) for _ in range(n_label)]
+            targets = [lab] * n_label
             det = dets.get(im["id"])
             if det is not None:
                 iou = box_iou(det, lab)
                 keep = iou.max(axis=1) >= MIN_IOU
                 det, matched = det[keep], lab[iou.argmax(axis=1)[keep]]
                 boxes += [det] + [jitter_boxes(det, config.det_jitter, rng)
-                                  for _ in range(config.det_jitters)]
-                targets += [matched] * (1 + config.det_jitters)
+                                  for _ in range(n_det)]
+                targets += [matched] * (1 + n_det)
             box, target = np.concatenate(boxes), np.concatenate(targets)
             frames = crop_frames(box)
             crops.append(cut_crops(read_gray(path.parent, im["file_name"]), frames))
@@ -304,14 +316,16 @@ def export_box_refiner(net: BoxRefinerNet, path: str | Path, extra: dict | None 
 
 
 def run(datasets: Sequence[str | Path], detections: Sequence[str | Path | None],
-        out: str | Path, config: BoxRefinerConfig, progress: bool = True) -> BoxRefinerReport:
+        out: str | Path, config: BoxRefinerConfig, progress: bool = True,
+        repeats: Sequence[int] | None = None) -> BoxRefinerReport:
     """Crops, training and export: what ``lunarnav train-box-refiner`` does."""
-    crops = build_crops(datasets, detections, config, progress)
+    crops = build_crops(datasets, detections, config, progress, repeats)
     print(f"{len(crops)} crops from {len(datasets)} set(s)", flush=True)
     net, report = train_box_refiner(crops, config, log=(lambda s: print(s, flush=True)))
     meta = {"lunarnav.training": json.dumps({
         "datasets": [str(d) for d in datasets],
         "detections": [None if d is None else str(d) for d in detections],
+        "repeats": list(repeats) if repeats is not None else [1] * len(datasets),
         **asdict(config), **asdict(report)})}
     export_box_refiner(net, out, meta)
     return report

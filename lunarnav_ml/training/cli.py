@@ -143,6 +143,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--batch", type=int, default=None, help="crops per step (default 256)")
     p.add_argument("--label-jitters", type=int, default=None,
                    help="jittered crops per label (default 2)")
+    p.add_argument("--repeats", type=int, nargs="+", default=None,
+                   help="each set's weight in the mix, in the same order (default 1 each): "
+                        "that many times the crops, e.g. 8 for a few hundred real frames "
+                        "beside thousands of renders")
     p.add_argument("--seed", type=int, default=None,
                    help="seed of the jitters, the split and the weights (default 0)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
@@ -164,7 +168,8 @@ def run_train_box_refiner(args: argparse.Namespace) -> int:
                           f"{len(args.datasets)} set(s), {len(detections)} given")
     check_destination(args.out)
     set_torch_threads(args.threads)
-    report = run(args.datasets, detections, args.out, config, progress=not args.quiet)
+    report = run(args.datasets, detections, args.out, config, progress=not args.quiet,
+                 repeats=args.repeats)
     print(f"lunarnav train-box-refiner: {report.n_train} training crops, {report.steps} steps "
           f"in {report.seconds:.0f} s; held-out mean |edge error| {report.refined_l1:.4f} of "
           f"the crop (the input boxes' side edges {report.input_l1:.4f}; {report.n_val} crops) "

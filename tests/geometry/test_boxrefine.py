@@ -179,6 +179,13 @@ def test_crops_from_labels_and_detections(labelled_set):
     assert both.crops.shape[1:] == (CROP_H, CROP_W) and both.edges.shape == (len(both), 4)
     again = build_crops([labelled_set], [labelled_set / "detections.json"], cfg, progress=False)
     assert np.array_equal(both.crops, again.crops) and np.array_equal(both.edges, again.edges)
+    # a set's weight in the mix: that many times its label crops and its detections' crops
+    twice = build_crops([labelled_set], [labelled_set / "detections.json"], cfg, progress=False,
+                        repeats=[2])
+    assert len(twice) == 2 * len(both)
+    for bad in ([0], [1, 1], [1.5]):
+        with pytest.raises(ConfigError, match="repeats: one positive integer per set"):
+            build_crops([labelled_set], [None], cfg, progress=False, repeats=bad)
 
 
 def test_training_learns_and_is_seeded(labelled_set):
@@ -237,8 +244,11 @@ def test_cli_train_then_eval_and_errors(labelled_set, tmp_path, capsys):
                  "--out", str(bad), "--quiet"]) == 2
     assert main(["train-box-refiner", str(labelled_set), "--detections",
                  str(tmp_path / "missing.json"), "--out", str(bad), "--quiet"]) == 2
+    assert main(["train-box-refiner", str(labelled_set), "--repeats", "1", "2",
+                 "--out", str(bad), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and "one results file" in err[0] and "missing.json" in err[1]
+    assert len(err) == 3 and "one results file" in err[0] and "missing.json" in err[1]
+    assert "repeats: one positive integer per set" in err[2]
     assert not bad.exists()
 
 
