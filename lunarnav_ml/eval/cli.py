@@ -37,18 +37,18 @@ def add_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
 
 
 def add_box_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
-    """``--box-refiner [ONNX]`` (no file: the shipped box refiner; off by default)."""
-    p.add_argument("--box-refiner", nargs="?", const=SHIPPED, default=None, metavar="ONNX",
+    """``--box-refiner [ONNX]`` (default: the shipped box refiner) and ``--no-box-refiner``."""
+    p.add_argument("--box-refiner", nargs="?", const=SHIPPED, default=SHIPPED, metavar="ONNX",
                    help=f"{prefix}move each detected crater box's edges onto the rim with this "
-                        "box refiner from `lunarnav train-box-refiner` before the lift (no file: "
-                        "the shipped one, trained on renders: on them it lifts more craters, "
-                        "nearer; on real rover frames it moved boxes away from their labels; "
-                        "default off; docs/geometry.md)")
+                        "box refiner from `lunarnav train-box-refiner` before the lift (default, "
+                        "or no file: the shipped one; docs/geometry.md)")
+    p.add_argument("--no-box-refiner", dest="box_refiner", action="store_const", const=None,
+                   help=f"{prefix}lift from the detector's boxes as they are")
 
 
 def load_box_refiner(args: argparse.Namespace) -> Any:
-    """The :class:`~lunarnav_ml.geometry.boxrefine.BoxRefiner` of ``--box-refiner`` (None
-    without it), on ``--threads`` onnxruntime threads."""
+    """The :class:`~lunarnav_ml.geometry.boxrefine.BoxRefiner` of ``--box-refiner`` (None with
+    ``--no-box-refiner``), on ``--threads`` onnxruntime threads."""
     if args.box_refiner is None:
         return None
     from lunarnav_ml.geometry.boxrefine import BoxRefiner

@@ -228,14 +228,15 @@ def test_cli_train_then_eval_and_errors(labelled_set, tmp_path, capsys):
                  "--quiet", "--threads", "1"]) == 0
     assert "held-out mean |edge error|" in capsys.readouterr().out
     BoxRefiner(out)
-    for extra, want in ((["--box-refiner", str(out)], str(out)),
-                        (["--box-refiner"], str(DEFAULT_BOX_REFINER)), ([], None)):  # opt-in
+    for extra, want in ((["--box-refiner", str(out)], str(out)), ([], str(DEFAULT_BOX_REFINER)),
+                        (["--box-refiner"], str(DEFAULT_BOX_REFINER)),
+                        (["--no-box-refiner"], None)):  # on by default
         assert main(["eval", "--task", "geometry", "--gt", str(labelled_set), "--test-results",
                      str(dets), *extra, "--out", str(tmp_path / "g"), "--no-progress"]) == 0
         metrics = json.loads((tmp_path / "g" / "geometry_metrics.json").read_text())
         assert metrics["settings"]["box_refiner"] == want
-    assert main(["eval", "--task", "geometry", "--gt", str(labelled_set), "--box-refiner",
-                 "--out", str(tmp_path / "g"), "--no-progress"]) == 0  # labelled boxes: never
+    assert main(["eval", "--task", "geometry", "--gt", str(labelled_set), "--out",
+                 str(tmp_path / "g"), "--no-progress"]) == 0  # labelled boxes: never refined
     assert json.loads((tmp_path / "g" / "geometry_metrics.json").read_text())[
         "settings"]["box_refiner"] is None
     capsys.readouterr()
