@@ -49,12 +49,17 @@ def add_box_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> N
 def load_box_refiner(args: argparse.Namespace) -> Any:
     """The :class:`~lunarnav_ml.geometry.boxrefine.BoxRefiner` of ``--box-refiner`` (None with
     ``--no-box-refiner``), on ``--threads`` onnxruntime threads."""
-    if args.box_refiner is None:
-        return None
     from lunarnav_ml.geometry.boxrefine import BoxRefiner
 
-    return BoxRefiner(None if args.box_refiner == SHIPPED else args.box_refiner,
-                      threads=args.threads)
+    return _open_tool(BoxRefiner, args.box_refiner, args.threads)
+
+
+def _open_tool(cls: Any, choice: str | None, threads: int) -> Any:
+    """``cls`` (a refiner) on ``choice``: None for None (switched off), the shipped file for
+    ``SHIPPED``, else that file."""
+    if choice is None:
+        return None
+    return cls(None if choice == SHIPPED else choice, threads=threads)
 
 
 def add_lifter_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
@@ -88,12 +93,9 @@ def lifter_overrides(args: argparse.Namespace, base: Any) -> Any:
 def load_refiner(args: argparse.Namespace) -> Any:
     """The :class:`~lunarnav_ml.geometry.refine.DisparityRefiner` of ``--refiner`` (None with
     ``--no-refiner``), on ``--threads`` onnxruntime threads."""
-    if args.refiner is None:
-        return None
     from lunarnav_ml.geometry.refine import DisparityRefiner
 
-    return DisparityRefiner(None if args.refiner == SHIPPED else args.refiner,
-                            threads=args.threads)
+    return _open_tool(DisparityRefiner, args.refiner, args.threads)
 
 TASKS = ("detection", "geometry", "baselines-lidar", "baselines-stereo", "transfer")
 

@@ -163,10 +163,7 @@ def run_train_box_refiner(args: argparse.Namespace) -> int:
     config = BoxRefinerConfig(**{k: v for k, v in given.items() if v is not None})
     detections = ([None if str(d).lower() == "none" else d for d in args.detections]
                   if args.detections is not None else [None] * len(args.datasets))
-    if len(detections) != len(args.datasets):
-        raise ConfigError(f"--detections: one results file (or 'none') per set: "
-                          f"{len(args.datasets)} set(s), {len(detections)} given")
-    check_destination(args.out)
+    check_destination(args.out)  # build_crops checks one results file per set
     set_torch_threads(args.threads)
     report = run(args.datasets, detections, args.out, config, progress=not args.quiet,
                  repeats=args.repeats)
