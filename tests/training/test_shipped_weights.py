@@ -14,6 +14,7 @@ WEIGHTS = Path(__file__).parents[2] / "lunarnav_ml" / "weights"
 
 @pytest.mark.parametrize(("name", "preset", "size"), [("small.pt", "small-relu", 384),
                                                       ("small_fullres.pt", "small-relu", 384),
+                                                      ("small_s2.pt", "small-relu-s2", 384),
                                                       ("nano.pt", "nano", 320)])
 def test_shipped_weights_load_and_detect(name, preset, size):
     path = WEIGHTS / name
