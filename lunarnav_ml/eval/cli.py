@@ -28,22 +28,30 @@ SHIPPED = "shipped"  # --refiner without a file
 
 def add_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
     """``--refiner [ONNX]`` (default: the shipped refiner) and ``--no-refiner``."""
-    p.add_argument("--refiner", nargs="?", const=SHIPPED, default=SHIPPED, metavar="ONNX",
-                   help=f"{prefix}correct SGBM's disparity around each crater box with this "
+    _add_tool_arguments(p, "refiner",
+                        f"{prefix}correct SGBM's disparity around each crater box with this "
                         "refiner from `lunarnav train-refiner` before the lifts (default, or no "
-                        "file: the shipped one; docs/geometry.md)")
-    p.add_argument("--no-refiner", dest="refiner", action="store_const", const=None,
-                   help=f"{prefix}lift from SGBM's disparity as it is")
+                        "file: the shipped one; docs/geometry.md)",
+                        f"{prefix}lift from SGBM's disparity as it is")
 
 
 def add_box_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
     """``--box-refiner [ONNX]`` (default: the shipped box refiner) and ``--no-box-refiner``."""
-    p.add_argument("--box-refiner", nargs="?", const=SHIPPED, default=SHIPPED, metavar="ONNX",
-                   help=f"{prefix}move each detected crater box's edges onto the rim with this "
+    _add_tool_arguments(p, "box-refiner",
+                        f"{prefix}move each detected crater box's edges onto the rim with this "
                         "box refiner from `lunarnav train-box-refiner` before the lift (default, "
-                        "or no file: the shipped one; docs/geometry.md)")
-    p.add_argument("--no-box-refiner", dest="box_refiner", action="store_const", const=None,
-                   help=f"{prefix}lift from the detector's boxes as they are")
+                        "or no file: the shipped one; docs/geometry.md)",
+                        f"{prefix}lift from the detector's boxes as they are")
+
+
+def _add_tool_arguments(p: argparse.ArgumentParser, name: str, on_help: str,
+                        off_help: str) -> None:
+    """``--NAME [ONNX]`` (default and without a file: ``SHIPPED``) and ``--no-NAME`` (None), the
+    choice :func:`_open_tool` opens."""
+    dest = name.replace("-", "_")
+    p.add_argument(f"--{name}", nargs="?", const=SHIPPED, default=SHIPPED, metavar="ONNX",
+                   help=on_help)
+    p.add_argument(f"--no-{name}", dest=dest, action="store_const", const=None, help=off_help)
 
 
 def load_box_refiner(args: argparse.Namespace) -> Any:
