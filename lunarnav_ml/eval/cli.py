@@ -35,13 +35,15 @@ def add_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
                         f"{prefix}lift from SGBM's disparity as it is")
 
 
-def add_box_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
+def add_box_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "",
+                              when: str = "before the lift",
+                              off: str = "lift from the detector's boxes as they are") -> None:
     """``--box-refiner [ONNX]`` (default: the shipped box refiner) and ``--no-box-refiner``."""
     _add_tool_arguments(p, "box-refiner",
                         f"{prefix}move each detected crater box's edges onto the rim with this "
-                        "box refiner from `lunarnav train-box-refiner` before the lift (default, "
+                        f"box refiner from `lunarnav train-box-refiner` {when} (default, "
                         "or no file: the shipped one; docs/geometry.md)",
-                        f"{prefix}lift from the detector's boxes as they are")
+                        f"{prefix}{off}")
 
 
 def _add_tool_arguments(p: argparse.ArgumentParser, name: str, on_help: str,
@@ -60,6 +62,16 @@ def load_box_refiner(args: argparse.Namespace) -> Any:
     from lunarnav_ml.geometry.boxrefine import BoxRefiner
 
     return _open_tool(BoxRefiner, args.box_refiner, args.threads)
+
+
+def with_box_refiner(predictor: Any, args: argparse.Namespace) -> Any:
+    """``predictor`` with its crater boxes refined by ``--box-refiner`` (a
+    :class:`~lunarnav_ml.geometry.boxrefine.BoxRefinedDetector`), or as it is with
+    ``--no-box-refiner``."""
+    from lunarnav_ml.geometry.boxrefine import BoxRefinedDetector
+
+    refiner = load_box_refiner(args)
+    return predictor if refiner is None else BoxRefinedDetector(predictor, refiner)
 
 
 def _open_tool(cls: Any, choice: str | None, threads: int) -> Any:
@@ -136,7 +148,8 @@ def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]
         return gt, read_coco_results(results_path)
     if args.model is None:
         raise InputError(f"eval: give --model or --{split}-results for the {split} split")
-    predictor = load_predictor(args.model, args.threads, args.img_size, tta_config(args))
+    predictor = with_box_refiner(load_predictor(args.model, args.threads, args.img_size,
+                                                tta_config(args)), args)
     return gt, predict_coco(predictor, gt, gt_path.parent, desc=split, progress=not args.no_progress)
 
 
@@ -161,8 +174,13 @@ def run_detection(args: argparse.Namespace) -> int:
     with atomic.atomic_dir(args.out) as work:
         atomic.write_json(work / "detections.json", results, indent=None)
         tta = tta_config(args) if args.test_results is None else None
+        notes = [tta.describe()] if tta else []
+        if args.test_results is None and args.box_refiner is not None:
+            notes.append("crater boxes refined by " + ("the shipped box refiner"
+                                                       if args.box_refiner == SHIPPED
+                                                       else str(args.box_refiner)))
         write_report(metrics, work, f"Detection report: {args.test_gt}"
-                     + (f" ({tta.describe()})" if tta else ""))
+                     + (f" ({'; '.join(notes)})" if notes else ""))
         write_overlays(gt, results, threshold, Path(args.test_gt).parent, work / "overlays",
                        args.overlays)
     crater = metrics["coco"]["per_class"]["crater"]
@@ -224,11 +242,12 @@ def run_transfer(args: argparse.Namespace) -> int:
     if args.test_results is not None:
         results = read_coco_results(args.test_results)
     else:  # load_predictor runs .onnx files through onnxruntime, checkpoints through torch
-        predictor = load_predictor(args.onnx or args.checkpoint or args.model, args.threads,
-                                   args.img_size, tta_config(args))
+        predictor = with_box_refiner(load_predictor(args.onnx or args.checkpoint or args.model,
+                                                    args.threads, args.img_size,
+                                                    tta_config(args)), args)
         results = predict_coco(predictor, gt, gt_path.parent, desc="transfer",
                                progress=not args.no_progress)
-        if isinstance(predictor, TTAPredictor):
+        if hasattr(predictor, "describe"):
             title += f" ({predictor.describe()})"
     with atomic.atomic_dir(args.out) as work:
         atomic.write_json(work / "detections.json", results, indent=None)
@@ -305,7 +324,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="(geometry) SGBM on the pair, or the dataset's rendered disparity "
                         "(isolates the lifter)")
     add_refiner_arguments(p, "(geometry) ")
-    add_box_refiner_arguments(p, "(geometry, with --test-results) ")
+    add_box_refiner_arguments(p, "", "before the detection, transfer and geometry figures "
+                              "(detection and transfer when a model runs; geometry with "
+                              "--test-results; boxes marked refined are not refined again)",
+                              "score the detector's boxes as they are")
     add_lifter_arguments(p, "(geometry) ")
     p.add_argument("--prior-sigma", type=float, default=1.0,
                    help="(baselines-lidar) map-prior position error per axis, m: each map "

@@ -109,10 +109,16 @@ def coco_results(preds: list[dict[str, np.ndarray]], image_ids: list[int]) -> li
 
 
 def to_coco_results(pred: dict[str, np.ndarray], image_id: int) -> list[dict[str, Any]]:
-    """One image's ``{boxes xyxy, scores, labels}`` as COCO results (bbox as x, y, w, h)."""
+    """One image's ``{boxes xyxy, scores, labels}`` as COCO results (bbox as x, y, w, h);
+    with a ``box_refined`` mask (a ``BoxRefinedDetector``'s), those results carry
+    ``"box_refined": true``."""
     boxes = np.asarray(pred["boxes"], dtype=float).reshape(-1, 4)
-    return [
+    results = [
         {"image_id": int(image_id), "category_id": int(label),
          "bbox": [float(x0), float(y0), float(x1 - x0), float(y1 - y0)], "score": float(score)}
         for (x0, y0, x1, y1), score, label in zip(boxes, pred["scores"], pred["labels"])
     ]
+    for result, refined in zip(results, pred.get("box_refined", ())):
+        if refined:
+            result["box_refined"] = True
+    return results

@@ -8,6 +8,7 @@ import argparse
 from pathlib import Path
 
 from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.eval.cli import add_box_refiner_arguments
 from lunarnav_ml.eval.tta import add_tta_arguments, tta_config
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
@@ -46,6 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="overlays in gallery.png, spread over the images (0: no gallery)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_tta_arguments(p)
+    add_box_refiner_arguments(p, when="(after --tta)",
+                              off="write the detector's boxes as they are")
     p.set_defaults(func=run_detect)
 
     p = subparsers.add_parser(
@@ -211,7 +214,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 def run_detect(args: argparse.Namespace) -> int:
     """Detect on the source images and write results and overlays."""
-    from lunarnav_ml.eval.cli import load_predictor
+    from lunarnav_ml.eval.cli import load_predictor, with_box_refiner
     from lunarnav_ml.training.detect import detect_files, list_images
 
     for name in ("conf", "iou", "overlay_conf"):
@@ -228,7 +231,8 @@ def run_detect(args: argparse.Namespace) -> int:
     if args.weights is None and not weights.is_file():
         raise ConfigError(f"no --weights given and no shipped weights at {weights}")
     files = list_images(args.source)
-    detector = load_predictor(weights, args.threads, args.img_size, tta_config(args))
+    detector = with_box_refiner(load_predictor(weights, args.threads, args.img_size,
+                                               tta_config(args)), args)
     out = detect_files(detector, files, args.out, conf_thres=args.conf, iou_thres=args.iou,
                        overlay_thres=args.overlay_conf, batch=args.batch,
                        progress=not args.quiet, gallery=args.gallery)

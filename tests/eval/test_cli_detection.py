@@ -29,3 +29,24 @@ def test_same_split_for_threshold_and_report_is_detected_once(tmp_path, onnx_pat
     assert calls == ["val", "val", "test"]
     report = json.loads((tmp_path / "a" / "metrics.json").read_text())
     assert report["n_images"] == 3
+
+
+def test_crater_boxes_refined_by_default_and_said_in_the_report(tmp_path, onnx_path):
+    gt = make_coco(tmp_path / "set", n_images=2, size=96)
+    common = ["eval", "--task", "detection", "--model", str(onnx_path), "--no-progress",
+              "--overlays", "0", "--gt", str(gt), "--threshold", "0.3"]
+    runs = {}
+    for name, extra in (("on", []), ("off", ["--no-box-refiner"])):
+        assert main([*common, *extra, "--out", str(tmp_path / name)]) == 0
+        runs[name] = json.loads((tmp_path / name / "detections.json").read_text())
+    title = (tmp_path / "on" / "report.md").read_text().splitlines()[0]
+    assert title.endswith("(crater boxes refined by the shipped box refiner)")
+    assert (tmp_path / "off" / "report.md").read_text().splitlines()[0].endswith("annotations.json")
+    craters = [r for r in runs["on"] if r["category_id"] == 1]
+    assert craters and all(r.get("box_refined") for r in craters)
+    assert not any("box_refined" in r for r in runs["off"])
+    # a results file is scored as it is: its boxes are not refined again
+    assert main(["eval", "--task", "detection", "--gt", str(gt), "--threshold", "0.3",
+                 "--test-results", str(tmp_path / "off" / "detections.json"), "--overlays", "0",
+                 "--out", str(tmp_path / "file")]) == 0
+    assert json.loads((tmp_path / "file" / "detections.json").read_text()) == runs["off"]

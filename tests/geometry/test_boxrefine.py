@@ -10,6 +10,7 @@ import torch
 from lunarnav_ml.cli import main
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.geometry.boxrefine import (
+    BoxRefinedDetector,
     CROP_H,
     CROP_W,
     DEFAULT_BOX_REFINER,
@@ -110,6 +111,62 @@ def test_refiner_inputs_and_results(shipped):
     out = shipped.refine_results(gray, results)
     assert out[0] is results[0] and out[1]["score"] == 0.8 and len(out[1]["bbox"]) == 4
     assert results[1]["bbox"] == [10.0, 10.0, 40.0, 10.0]  # the input is not changed
+
+
+class _FixedDetector:
+    """Gives the same detections for every image (xyxy, highest score first)."""
+
+    img_size = 384
+
+    def __init__(self, boxes, scores, labels):
+        self.out = {"boxes": np.asarray(boxes, np.float32), "scores": np.asarray(scores, np.float32),
+                    "labels": np.asarray(labels, np.int64)}
+        self.calls = []
+
+    def predict(self, images, conf_thres=0.001, iou_thres=0.6, max_det=300):
+        self.calls.append((conf_thres, iou_thres, max_det))
+        return [dict(self.out) for _ in images]
+
+
+def test_refined_detector_moves_crater_boxes_and_suppresses_their_repeats(shipped, renders):
+    """Crater boxes, and only those, are refined on the image they came from; two crater boxes
+    that land on one rim count once (per-class NMS at the call's IoU), a rock box in the same
+    place stays, and the results carry the mark that stops a second refinement."""
+    import cv2
+
+    from lunarnav_ml.eval.predict import to_coco_results
+
+    coco = json.loads(renders.read_text())
+    im = coco["images"][0]
+    label = max((a["bbox"] for a in coco["annotations"] if a["image_id"] == im["id"]
+                 and a["category_id"] == 1 and not a.get("ignore")), key=lambda b: b[2])
+    gray = cv2.imread(str(renders.parent / im["file_name"]), 0)
+    x, y, w, h = label
+    near = [x + 0.08 * w, y - 0.1 * h, x + 1.02 * w, y + 0.95 * h]  # a detector's box, off
+    rock = [5.0, 5.0, 40.0, 30.0]
+    inner = _FixedDetector([near, near, rock], [0.9, 0.8, 0.7], [1, 1, 2])
+    det = BoxRefinedDetector(inner, shipped)
+    assert det.img_size == 384  # the wrapped detector's attributes
+    rgb = np.repeat(gray[:, :, None], 3, axis=2)
+    out = det.predict([rgb], conf_thres=0.01, iou_thres=0.5)[0]
+    assert inner.calls == [(0.01, 0.5, 300)]
+    assert out["labels"].tolist() == [1, 2] and out["scores"].tolist() == pytest.approx([0.9, 0.7])
+    assert out["box_refined"].tolist() == [True, False]
+    assert out["boxes"][1].tolist() == rock
+    truth = np.array([[x, y, w, h]])
+    xywh = lambda b: np.array([[b[0], b[1], b[2] - b[0], b[3] - b[1]]])  # noqa: E731
+    assert box_iou(xywh(out["boxes"][0]), truth)[0, 0] > box_iou(xywh(near), truth)[0, 0] + 0.05
+    # the same as the refiner called on the gray image
+    np.testing.assert_allclose(xywh(out["boxes"][0]), shipped(gray, xywh(near)), atol=1e-3)
+    results = to_coco_results(out, 7)
+    assert results[0]["box_refined"] is True and "box_refined" not in results[1]
+    again = shipped.refine_results(gray, results)
+    assert again[0] is results[0]  # marked: not refined a second time
+    # no crater: the detections as they were, NMS not run again
+    only_rock = BoxRefinedDetector(_FixedDetector([rock, rock], [0.9, 0.8], [2, 2]), shipped)
+    out = only_rock.predict([rgb])[0]
+    assert len(out["boxes"]) == 2 and not out["box_refined"].any()
+    assert only_rock.predict([]) == []
 
 
 def _export(tmp_path, name, **props):

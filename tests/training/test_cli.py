@@ -30,7 +30,17 @@ def test_detect_folder_writes_results_and_overlays(weights, tiny_coco, tmp_path)
     images = json.loads((tmp_path / "images.json").read_text())
     assert len(images) == 8 and len(list((tmp_path / "overlays").glob("*.jpg"))) == 8
     assert results and {r["image_id"] for r in results} <= {i["id"] for i in images}
-    assert set(results[0]) == {"image_id", "category_id", "bbox", "score"}
+    assert set(results[0]) - {"box_refined"} == {"image_id", "category_id", "bbox", "score"}
+    refined = {r.get("box_refined", False) for r in results if r["category_id"] == 1}
+    assert refined == {True}  # the shipped box refiner, on by default
+    assert not any("box_refined" in r for r in results if r["category_id"] != 1)
+    args = _parser().parse_args(["detect", str(folder), "--weights", str(weights), "--out",
+                                 str(tmp_path / "raw"), "--quiet", "--no-box-refiner"])
+    assert args.func(args) == 0
+    raw = json.loads((tmp_path / "raw" / "results.json").read_text())
+    assert not any("box_refined" in r for r in raw)
+    assert sorted(r["score"] for r in raw if r["category_id"] != 1) == sorted(
+        r["score"] for r in results if r["category_id"] != 1)  # other classes as they were
     sheet = cv2.imread(str(tmp_path / "gallery.png"))
     assert sheet.shape == (2 * 320, 4 * 320, 3)  # 8 images: two rows of four tiles
 
