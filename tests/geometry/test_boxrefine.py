@@ -10,10 +10,10 @@ import torch
 from lunarnav_ml.cli import main
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.geometry.boxrefine import (
-    BoxRefinedDetector,
     CROP_H,
     CROP_W,
     DEFAULT_BOX_REFINER,
+    BoxRefinedDetector,
     BoxRefiner,
     crop_frames,
     cut_crops,
@@ -154,7 +154,10 @@ def test_refined_detector_moves_crater_boxes_and_suppresses_their_repeats(shippe
     assert out["box_refined"].tolist() == [True, False]
     assert out["boxes"][1].tolist() == rock
     truth = np.array([[x, y, w, h]])
-    xywh = lambda b: np.array([[b[0], b[1], b[2] - b[0], b[3] - b[1]]])  # noqa: E731
+
+    def xywh(b):
+        return np.array([[b[0], b[1], b[2] - b[0], b[3] - b[1]]])
+
     assert box_iou(xywh(out["boxes"][0]), truth)[0, 0] > box_iou(xywh(near), truth)[0, 0] + 0.05
     # the same as the refiner called on the gray image
     np.testing.assert_allclose(xywh(out["boxes"][0]), shipped(gray, xywh(near)), atol=1e-3)
