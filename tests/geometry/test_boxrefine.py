@@ -119,7 +119,8 @@ class _FixedDetector:
     img_size = 384
 
     def __init__(self, boxes, scores, labels):
-        self.out = {"boxes": np.asarray(boxes, np.float32), "scores": np.asarray(scores, np.float32),
+        self.out = {"boxes": np.asarray(boxes, np.float32),
+                    "scores": np.asarray(scores, np.float32),
                     "labels": np.asarray(labels, np.int64)}
         self.calls = []
 
