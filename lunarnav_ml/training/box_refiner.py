@@ -39,6 +39,7 @@ from lunarnav_ml.geometry.boxrefine import (
     CROPS_NAME,
     EDGES_NAME,
     KIND,
+    REFINED_KEY,
     crop_frames,
     cut_crops,
     encode_edges,
@@ -146,6 +147,10 @@ def _detection_boxes(path: Path) -> dict[int, np.ndarray]:
                 and box[2] > 0 and box[3] > 0):
             raise InputError(f"{path}: result {k}: bbox: expected 4 finite numbers with a "
                              f"positive width and height, got {box!r}")
+        if d.get(REFINED_KEY):  # a refiner learns the network's errors, not its own
+            raise InputError(f"{path}: result {k}: box_refined: these boxes were refined "
+                             "already; take the detections with `lunarnav eval --task detection "
+                             "--no-box-refiner`")
         out.setdefault(int(d["image_id"]), []).append(box)
     return {k: np.asarray(v, dtype=np.float64) for k, v in out.items()}
 

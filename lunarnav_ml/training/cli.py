@@ -139,8 +139,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "set you will test on")
     p.add_argument("--detections", type=Path, nargs="+", default=None,
                    help="a detector's COCO results on each set, in the same order (the "
-                        "detections.json of 'lunarnav eval --task detection --out D'); 'none' "
-                        "for a set without; default: labels only")
+                        "detections.json of 'lunarnav eval --task detection --no-box-refiner "
+                        "--out D': the network's boxes); 'none' for a set without; default: "
+                        "labels only")
     p.add_argument("--out", type=Path, required=True, help="ONNX file to write")
     p.add_argument("--epochs", type=int, default=None, help="passes over the crops (default 3)")
     p.add_argument("--batch", type=int, default=None, help="crops per step (default 256)")

@@ -311,6 +311,13 @@ def test_cli_train_then_eval_and_errors(labelled_set, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and "one results file" in err[0] and "missing.json" in err[1]
     assert "repeats: one positive integer per set" in err[2]
+    refined = tmp_path / "refined.json"
+    refined.write_text(json.dumps([{**r, "box_refined": True} if r["category_id"] == 1 else r
+                                   for r in json.loads(dets.read_text())]))
+    assert main(["train-box-refiner", str(labelled_set), "--detections", str(refined),
+                 "--out", str(bad), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "refined.json: result" in err[0] and "--no-box-refiner" in err[0]
     assert not bad.exists()
 
 
