@@ -176,8 +176,8 @@ class BoxRefiner:
 
 
 class BoxRefinedDetector:
-    """A detector whose crater boxes a :class:`BoxRefiner` moves onto the rims, then per-class
-    NMS again (two boxes moved onto one rim count once). Wraps anything with
+    """A detector whose crater boxes a :class:`BoxRefiner` moves onto the rims (clipped to the
+    image), then per-class NMS again (two boxes moved onto one rim count once). Wraps anything with
     ``predict(images, conf_thres, iou_thres, max_det)`` (the torch ``Detector``, the onnxruntime
     ``OnnxDetector``, a ``TTAPredictor``); other attributes are the wrapped detector's.
 
@@ -219,9 +219,12 @@ class BoxRefinedDetector:
         labels = np.asarray(pred["labels"]).reshape(-1)
         crater = labels == CRATER_LABEL
         if crater.any():
+            gray = as_image("image", image)
             xywh = np.column_stack([boxes[crater, :2], boxes[crater, 2:] - boxes[crater, :2]])
-            xywh = self.refiner(as_image("image", image), xywh)
-            boxes[crater] = np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]])
+            xywh = self.refiner(gray, xywh)
+            h, w = gray.shape  # clipped to the image, as the detector's boxes and the labels are
+            boxes[crater] = np.clip(np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]),
+                                    0.0, [w, h, w, h])
             keep = np.sort(np.asarray(cv2.dnn.NMSBoxesBatched(
                 np.column_stack([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]]).tolist(),
                 scores.tolist(), labels.astype(int).tolist(), 0.0, float(iou_thres)),

@@ -173,6 +173,19 @@ def test_refined_detector_moves_crater_boxes_and_suppresses_their_repeats(shippe
     assert only_rock.predict([]) == []
 
 
+def test_refined_boxes_are_clipped_to_the_image():
+    """A refiner that pushes a box past the frame's edges: the box ends at the edges, as the
+    detector's boxes and the labels do."""
+
+    class Outward:
+        def __call__(self, gray, xywh):
+            return xywh + np.array([-50.0, -50.0, 100.0, 100.0])
+
+    det = BoxRefinedDetector(_FixedDetector([[10.0, 20.0, 60.0, 40.0]], [0.9], [1]), Outward())
+    out = det.predict([np.zeros((80, 120, 3), np.uint8)])[0]
+    assert out["boxes"].tolist() == [[0.0, 0.0, 110.0, 80.0]]
+
+
 def _export(tmp_path, name, **props):
     torch.manual_seed(0)
     return export_box_refiner(BoxRefinerNet(), tmp_path / name, props)
