@@ -176,9 +176,9 @@ def run_detection(args: argparse.Namespace) -> int:
         tta = tta_config(args) if args.test_results is None else None
         notes = [tta.describe()] if tta else []
         if args.test_results is None and args.box_refiner is not None:
-            notes.append("crater boxes refined by " + ("the shipped box refiner"
-                                                       if args.box_refiner == SHIPPED
-                                                       else str(args.box_refiner)))
+            from lunarnav_ml.geometry.boxrefine import refined_by
+
+            notes.append(refined_by(None if args.box_refiner == SHIPPED else args.box_refiner))
         write_report(metrics, work, f"Detection report: {args.test_gt}"
                      + (f" ({'; '.join(notes)})" if notes else ""))
         write_overlays(gt, results, threshold, Path(args.test_gt).parent, work / "overlays",

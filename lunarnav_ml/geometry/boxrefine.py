@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from lunarnav_ml.errors import InputError
+from lunarnav_ml.geometry._checks import as_image
 
 KIND = "box_refiner"
 CRATER_LABEL = 1  # the category whose boxes are refined
@@ -100,6 +101,12 @@ def decode_edges(edges: np.ndarray, frames: np.ndarray) -> np.ndarray:
     x0, y0 = f[:, 0] + e[:, 0] * f[:, 2], f[:, 1] + e[:, 1] * f[:, 3]
     x1, y1 = f[:, 0] + e[:, 2] * f[:, 2], f[:, 1] + e[:, 3] * f[:, 3]
     return np.column_stack([x0, y0, x1 - x0, y1 - y0])
+
+
+def refined_by(path: str | os.PathLike | None) -> str:
+    """The report-title phrase for boxes refined by ``path`` (None: the shipped file)."""
+    shipped = path is None or Path(path).resolve() == DEFAULT_BOX_REFINER
+    return "crater boxes refined by " + ("the shipped box refiner" if shipped else str(path))
 
 
 class BoxRefiner:
@@ -197,8 +204,7 @@ class BoxRefinedDetector:
     def describe(self) -> str:
         """One line for report titles."""
         inner = getattr(self.predictor, "describe", None)
-        return ((inner() + "; " if callable(inner) else "")
-                + f"crater boxes refined by {self.refiner.path.name}")
+        return (inner() + "; " if callable(inner) else "") + refined_by(self.refiner.path)
 
     def predict(self, images: list[np.ndarray], conf_thres: float = 0.001,
                 iou_thres: float = 0.6, max_det: int = 300) -> list[dict[str, np.ndarray]]:
@@ -212,8 +218,6 @@ class BoxRefinedDetector:
                ) -> dict[str, np.ndarray]:
         """One image's detections with their crater boxes refined and NMS at ``iou_thres``
         run again per class."""
-        from lunarnav_ml.geometry._checks import as_image
-
         boxes = np.asarray(pred["boxes"], np.float64).reshape(-1, 4).copy()
         scores = np.asarray(pred["scores"], np.float32).reshape(-1)
         labels = np.asarray(pred["labels"]).reshape(-1)
