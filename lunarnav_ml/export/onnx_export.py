@@ -181,15 +181,18 @@ def trace_to_onnx(module: nn.Module, size: tuple[int, int], opset: int, dynamic:
                         axes, opset)
 
 
-def trace_module(module: nn.Module, dummy: torch.Tensor, input_name: str, output_name: str,
-                 axes: dict[str, dict[int, str]] | None, opset: int) -> onnx.ModelProto:
-    """Trace a one-input, one-output ``module`` on ``dummy`` to an ONNX model in memory
-    (TorchScript exporter, constants folded; ``axes``: the dynamic axes by name)."""
+def trace_module(module: nn.Module, dummy: torch.Tensor, input_name: str,
+                 output_name: str | Sequence[str], axes: dict[str, dict[int, str]] | None,
+                 opset: int) -> onnx.ModelProto:
+    """Trace a one-input ``module`` (one output, or a tuple named by ``output_name`` in order)
+    on ``dummy`` to an ONNX model in memory (TorchScript exporter, constants folded; ``axes``:
+    the dynamic axes by name)."""
+    names = [output_name] if isinstance(output_name, str) else list(output_name)
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation/tracer notes
         torch.onnx.export(module, (dummy,), buf, opset_version=opset, dynamo=False,
-                          input_names=[input_name], output_names=[output_name],
+                          input_names=[input_name], output_names=names,
                           dynamic_axes=axes, do_constant_folding=True)
     return onnx.load_from_string(buf.getvalue())
 

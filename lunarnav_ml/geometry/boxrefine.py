@@ -13,6 +13,12 @@ context), resampled to ``CROP_W`` x ``CROP_H``. Each crop is normalized by its o
 spread (:func:`normalize_crops`), and the net returns the box's left, top, right and bottom
 edges as fractions of the crop (:func:`decode_edges`).
 
+A refiner trained with a quality output (``train-box-refiner --quality W``) also returns, per
+crop, its estimate of the IoU of the refined box with the crater's label box (``quality``, in
+[0, 1]). :class:`BoxRefinedDetector` then scores each crater sqrt(score x quality): the boxes
+that set the operating threshold's false alarms sit on craters at IoU 0.2-0.5, and the
+detector's score does not rank them below the well-placed ones.
+
 The ONNX file carries ``lunarnav.kind = box_refiner`` and ``lunarnav.crop`` (``"W,H"``).
 """
 
@@ -33,6 +39,7 @@ CRATER_LABEL = 1  # the category whose boxes are refined
 REFINED_KEY = "box_refined"  # marks a COCO result whose box was refined already
 CROPS_NAME = "crops"
 EDGES_NAME = "edges"
+QUALITY_NAME = "quality"  # optional output: the refined box's IoU with the label, estimated
 CROP_W, CROP_H = 128, 64
 DEFAULT_BOX_REFINER = Path(__file__).resolve().parents[1] / "weights" / "box_refiner.onnx"
 
@@ -136,6 +143,7 @@ class BoxRefiner:
         if ins != {CROPS_NAME} or EDGES_NAME not in outs:
             raise InputError(f"{self.path}: expected input '{CROPS_NAME}' and output "
                              f"'{EDGES_NAME}', got inputs {sorted(ins)}, outputs {sorted(outs)}")
+        self.has_quality = QUALITY_NAME in outs
 
     def __call__(self, gray: np.ndarray, boxes_xywh: np.ndarray) -> np.ndarray:
         """The boxes refined on the left image; a box the net would turn inside out (under
@@ -148,24 +156,36 @@ class BoxRefiner:
         Shape:
             gray: (H, W) uint8; boxes_xywh: (K, 4) px. Returns (K, 4) float64.
         """
+        return self.refine_scored(gray, boxes_xywh, quality=False)[0]
+
+    def refine_scored(self, gray: np.ndarray, boxes_xywh: np.ndarray, quality: bool = True
+                      ) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`__call__`'s boxes and, from a file with the quality output (and ``quality``),
+        each refined box's estimated IoU with its crater's label (K,) float32 in [0, 1];
+        otherwise None."""
         if not isinstance(gray, np.ndarray) or gray.ndim != 2 or gray.dtype != np.uint8:
             raise InputError(f"image: expected a uint8 gray image (H, W), got "
                              f"{getattr(gray, 'dtype', type(gray).__name__)} "
                              f"{getattr(gray, 'shape', '')}")
         boxes = np.asarray(boxes_xywh, dtype=np.float64)
         if boxes.size == 0:
-            return boxes.reshape(0, 4)
+            return boxes.reshape(0, 4), (np.zeros(0, np.float32) if quality and self.has_quality
+                                         else None)
         if boxes.ndim != 2 or boxes.shape[1] != 4 or not np.isfinite(boxes).all() \
                 or (boxes[:, 2:] <= 0).any():
             raise InputError(f"boxes: expected finite (K, 4) x, y, w, h with w, h > 0, got "
                              f"shape {boxes.shape}")
         frames = crop_frames(boxes)
         crops = normalize_crops(cut_crops(gray, frames))
-        edges = self.session.run([EDGES_NAME], {CROPS_NAME: crops})[0]
-        out = decode_edges(edges, frames)
+        names = [EDGES_NAME] + ([QUALITY_NAME] if quality and self.has_quality else [])
+        outputs = self.session.run(names, {CROPS_NAME: crops})
+        out = decode_edges(outputs[0], frames)
         bad = ~np.isfinite(out).all(axis=1) | (out[:, 2] < 2) | (out[:, 3] < 1)
         out[bad] = boxes[bad]
-        return out
+        if len(outputs) == 1:
+            return out, None
+        q = np.asarray(outputs[1], np.float32).reshape(-1)
+        return out, np.clip(np.nan_to_num(q, nan=0.0), 0.0, 1.0)
 
     def refine_results(self, gray: np.ndarray, results: list[dict[str, Any]]
                        ) -> list[dict[str, Any]]:
@@ -184,7 +204,8 @@ class BoxRefiner:
 
 class BoxRefinedDetector:
     """A detector whose crater boxes a :class:`BoxRefiner` moves onto the rims (clipped to the
-    image), then per-class NMS again (two boxes moved onto one rim count once). Wraps anything with
+    image) and, with a quality output, scores sqrt(score x quality); then per-class NMS again (two
+    boxes moved onto one rim count once). Wraps anything with
     ``predict(images, conf_thres, iou_thres, max_det)`` (the torch ``Detector``, the onnxruntime
     ``OnnxDetector``, a ``TTAPredictor``); other attributes are the wrapped detector's.
 
@@ -209,15 +230,15 @@ class BoxRefinedDetector:
     def predict(self, images: list[np.ndarray], conf_thres: float = 0.001,
                 iou_thres: float = 0.6, max_det: int = 300) -> list[dict[str, np.ndarray]]:
         """The wrapped detector's output per image (``{"boxes" (N, 4) xyxy px, "scores",
-        "labels"}``, highest score first) with the crater boxes refined, plus
-        ``"box_refined"`` (N,) bool."""
+        "labels"}``, highest score first) with the crater boxes refined (and rescored, by a
+        refiner with a quality output), plus ``"box_refined"`` (N,) bool."""
         preds = self.predictor.predict(images, conf_thres, iou_thres, max_det)
         return [self.refine(image, pred, iou_thres) for image, pred in zip(images, preds)]
 
     def refine(self, image: np.ndarray, pred: dict[str, np.ndarray], iou_thres: float
                ) -> dict[str, np.ndarray]:
-        """One image's detections with their crater boxes refined and NMS at ``iou_thres``
-        run again per class."""
+        """One image's detections with their crater boxes refined (and rescored) and NMS at
+        ``iou_thres`` run again per class; by score again."""
         boxes = np.asarray(pred["boxes"], np.float64).reshape(-1, 4).copy()
         scores = np.asarray(pred["scores"], np.float32).reshape(-1)
         labels = np.asarray(pred["labels"]).reshape(-1)
@@ -225,14 +246,18 @@ class BoxRefinedDetector:
         if crater.any():
             gray = as_image("image", image)
             xywh = np.column_stack([boxes[crater, :2], boxes[crater, 2:] - boxes[crater, :2]])
-            xywh = self.refiner(gray, xywh)
+            xywh, quality = self.refiner.refine_scored(gray, xywh)
+            if quality is not None:
+                scores = scores.copy()
+                scores[crater] = np.sqrt(scores[crater] * quality)
             h, w = gray.shape  # clipped to the image, as the detector's boxes and the labels are
             boxes[crater] = np.clip(np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]),
                                     0.0, [w, h, w, h])
-            keep = np.sort(np.asarray(cv2.dnn.NMSBoxesBatched(
+            keep = np.asarray(cv2.dnn.NMSBoxesBatched(
                 np.column_stack([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]]).tolist(),
                 scores.tolist(), labels.astype(int).tolist(), 0.0, float(iou_thres)),
-                dtype=np.int64).reshape(-1))  # back in the detector's order: by score
+                dtype=np.int64).reshape(-1)
+            keep = keep[np.lexsort((keep, -scores[keep]))]  # by score, ties in input order
             boxes, scores, labels, crater = boxes[keep], scores[keep], labels[keep], crater[keep]
         return {"boxes": boxes.astype(np.float32), "scores": scores, "labels": labels,
                 "box_refined": crater}

@@ -9,8 +9,16 @@ high), each optionally with a detector's results on it (COCO results JSON, e.g. 
   target that label's box. These teach the detector's own errors (too narrow, low at the bottom);
 - each label, ``label_jitters`` copies with each edge moved by N(0, 0.1 x side).
 
+With a quality weight (``quality`` > 0, ``--quality W``) the net has a fifth output, trained by
+binary cross-entropy (weighted W) on each crop's box's IoU with its best crater label (ignored and
+small labels included); the crops of the detections that overlap no label (best IoU < 0.3, each
+``repeats`` times) join the mix for that output only, so that it learns what a box off every rim
+looks like. The export then has a second output, ``quality`` (the sigmoid), and detection scores
+each crater sqrt(score x quality) (:class:`~lunarnav_ml.geometry.boxrefine.BoxRefinedDetector`).
+
 The net: six 3 x 3 convolutions with batch norm and ReLU (stride 2 at four of them) to a
-128 x 2 x 4 map, two dense layers, four outputs (the edges as fractions of the crop). Smooth-L1
+128 x 2 x 4 map, two dense layers, four outputs (the edges as fractions of the crop; five with
+the quality output). Smooth-L1
 loss (beta 0.02), AdamW under a one-cycle rate, batches of 256 with random mirroring and gain.
 The loop is plain PyTorch, as for the disparity refiner: one small model, crops in memory, a
 held-out error printed as it goes. The export is an ONNX file with a dynamic batch, read by
@@ -39,6 +47,7 @@ from lunarnav_ml.geometry.boxrefine import (
     CROPS_NAME,
     EDGES_NAME,
     KIND,
+    QUALITY_NAME,
     REFINED_KEY,
     crop_frames,
     cut_crops,
@@ -66,6 +75,7 @@ class BoxRefinerConfig:
     lr: float = 2e-3
     val_fraction: float = 0.05
     seed: int = 0
+    quality: float = 0.0  # weight of the IoU-quality loss; 0: edges only, no quality output
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch"):
@@ -82,6 +92,10 @@ class BoxRefinerConfig:
                                   f"{getattr(self, name)!r}")
         if not 0.0 < self.lr < 1.0:
             raise ConfigError(f"lr: expected a positive rate below 1, got {self.lr!r}")
+        if not (isinstance(self.quality, int | float) and np.isfinite(self.quality)
+                and 0.0 <= self.quality <= 10.0):
+            raise ConfigError(f"quality: expected a loss weight in [0, 10] (0: no quality "
+                              f"output), got {self.quality!r}")
         if not 0.0 < self.val_fraction < 0.5:
             raise ConfigError(f"val_fraction: expected a fraction in (0, 0.5), got "
                               f"{self.val_fraction!r}")
@@ -93,26 +107,43 @@ def _block(cin: int, cout: int, stride: int) -> nn.Sequential:
 
 
 class BoxRefinerNet(nn.Module):
-    """Normalized crops (B, 1, 64, 128) -> box edges (B, 4) as fractions of the crop."""
+    """Normalized crops (B, 1, 64, 128) -> box edges (B, 4) as fractions of the crop, and with
+    ``quality`` a fifth column: the logit of the box's IoU with its label."""
 
-    def __init__(self) -> None:
+    def __init__(self, quality: bool = False) -> None:
         super().__init__()
+        self.quality = quality
         self.features = nn.Sequential(_block(1, 16, 2), _block(16, 24, 1), _block(24, 48, 2),
                                       _block(48, 64, 2), _block(64, 96, 2), _block(96, 128, 2))
         self.head = nn.Sequential(nn.Flatten(), nn.Linear(128 * (CROP_H // 32) * (CROP_W // 32),
                                                           128),
-                                  nn.ReLU(inplace=True), nn.Linear(128, 4))
+                                  nn.ReLU(inplace=True), nn.Linear(128, 5 if quality else 4))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.head(self.features(x))
 
 
+class _Exported(nn.Module):
+    """A quality net's two outputs for the export: edges (B, 4) and quality (B,) in [0, 1]."""
+
+    def __init__(self, net: BoxRefinerNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.net(x)
+        return out[:, :4], torch.sigmoid(out[:, 4])
+
+
 @dataclass
 class BoxCrops:
-    """Training crops (N, 64, 128) uint8 and their targets (N, 4) float32."""
+    """Training crops (N, 64, 128) uint8 and their targets (N, 4) float32 (NaN rows: a crop
+    for the quality output only); with a quality output, each crop's box's IoU with its best
+    crater label (N,) float32."""
 
     crops: np.ndarray
     edges: np.ndarray
+    quality: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.crops)
@@ -132,6 +163,24 @@ def _label_boxes(anns: list[dict[str, Any]], path: Path) -> dict[int, np.ndarray
         if box[2] >= 12 and box[3] >= 6:
             out.setdefault(a["image_id"], []).append(box)
     return {k: np.asarray(v, dtype=np.float64) for k, v in out.items()}
+
+
+def _all_crater_boxes(anns: list[dict[str, Any]]) -> dict[int, np.ndarray]:
+    """Every crater label box per image id (ignored and small ones too): the quality target's
+    reference, so that a box on an ignored crater is not taught as one off every rim."""
+    out: dict[int, list[list[float]]] = {}
+    for a in anns:
+        box = a.get("bbox")
+        if a.get("category_id") == 1 and isinstance(box, list) and len(box) == 4:
+            out.setdefault(a["image_id"], []).append(box)
+    return {k: np.asarray(v, dtype=np.float64) for k, v in out.items()}
+
+
+def _best_iou(boxes: np.ndarray, labels: np.ndarray | None) -> np.ndarray:
+    """Each box's IoU with its best label (0 without labels). Shape: (K, 4) -> (K,) float32."""
+    if labels is None or not len(labels):
+        return np.zeros(len(boxes), np.float32)
+    return box_iou(boxes, labels).max(axis=1).astype(np.float32)
 
 
 def _detection_boxes(path: Path) -> dict[int, np.ndarray]:
@@ -206,33 +255,48 @@ def build_crops(datasets: Sequence[str | Path], detections: Sequence[str | Path 
         raise ConfigError(f"repeats: one positive integer per set ({len(datasets)}), got "
                           f"{repeats!r}")
     rng = np.random.default_rng(config.seed)
-    crops, edges = [], []
+    with_quality = config.quality > 0
+    crops, edges, quality = [], [], []
     for dataset, det_path, times in zip(datasets, detections, repeats, strict=True):
         n_label, n_det = config.label_jitters * times, (1 + config.det_jitters) * times - 1
         path = annotations_path(dataset)
         coco = read_json_file(path, "COCO annotations", dict)
         labels = _label_boxes(coco.get("annotations", []), path)
+        every = _all_crater_boxes(coco.get("annotations", [])) if with_quality else {}
         dets = _detection_boxes(Path(det_path)) if det_path is not None else {}
-        images = [im for im in coco.get("images", []) if im.get("id") in labels]
+        images = [im for im in coco.get("images", []) if im.get("id") in labels
+                  or (with_quality and im.get("id") in dets)]
         for im in tqdm(images, desc=f"crops {Path(dataset).name}", disable=not progress):
-            lab = labels[im["id"]]
+            lab = labels.get(im["id"], np.zeros((0, 4)))
             boxes = [jitter_boxes(lab, config.label_jitter, rng) for _ in range(n_label)]
             targets = [lab] * n_label
-            det = dets.get(im["id"])
-            if det is not None:
+            det, unmatched = dets.get(im["id"]), np.zeros((0, 4))
+            if det is not None and len(lab):
                 iou = box_iou(det, lab)
                 keep = iou.max(axis=1) >= MIN_IOU
-                det, matched = det[keep], lab[iou.argmax(axis=1)[keep]]
+                det, matched, unmatched = det[keep], lab[iou.argmax(axis=1)[keep]], det[~keep]
                 boxes += [det] + [jitter_boxes(det, config.det_jitter, rng)
                                   for _ in range(n_det)]
                 targets += [matched] * (1 + n_det)
-            box, target = np.concatenate(boxes), np.concatenate(targets)
+            elif det is not None:
+                unmatched = det
+            box = np.concatenate(boxes) if boxes else np.zeros((0, 4))
+            target = np.concatenate(targets) if targets else np.zeros((0, 4))
+            if with_quality:  # the unmatched detections: quality crops (edges NaN)
+                unmatched = np.repeat(unmatched, times, axis=0)
+                box = np.concatenate([box, unmatched])
+                quality.append(_best_iou(box, every.get(im["id"])))
+            if not len(box):
+                continue
             frames = crop_frames(box)
             crops.append(cut_crops(read_gray(path.parent, im["file_name"]), frames))
-            edges.append(encode_edges(target, frames))
-    if not crops:
+            edges.append(np.concatenate([encode_edges(target, frames[:len(target)]),
+                                         np.full((len(box) - len(target), 4), np.nan,
+                                                 np.float32)]))
+    if not crops or not np.isfinite(np.concatenate(edges)[:, 0]).any():
         raise InputError(f"no crater label of 12 x 6 px or more in {[str(d) for d in datasets]}")
-    return BoxCrops(np.concatenate(crops), np.concatenate(edges))
+    return BoxCrops(np.concatenate(crops), np.concatenate(edges),
+                    np.concatenate(quality) if with_quality else None)
 
 
 @dataclass(frozen=True)
@@ -246,6 +310,7 @@ class BoxRefinerReport:
     refined_l1: float
     steps: int
     seconds: float
+    quality_corr: float | None = None  # held-out correlation of quality with the IoU
 
 
 def _input_edges(n: int) -> np.ndarray:
@@ -261,9 +326,13 @@ def train_box_refiner(crops: BoxCrops, config: BoxRefinerConfig = BoxRefinerConf
     """Train a :class:`BoxRefinerNet` on ``crops`` (a held-out fraction measures it)."""
     if len(crops) < 2 * config.batch:
         raise InputError(f"{len(crops)} training crops: need at least {2 * config.batch}")
+    with_quality = config.quality > 0
+    if with_quality and (crops.quality is None or len(crops.quality) != len(crops)):
+        raise InputError("quality: these crops carry no quality targets; build them with the "
+                         "same config (quality > 0)")
     rng, val, train = seeded_split(len(crops), config.val_fraction, config.seed)
     n_val = len(val)
-    net = BoxRefinerNet()
+    net = BoxRefinerNet(quality=with_quality)
     opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=1e-4)
     per_epoch = len(train) // config.batch
     steps = config.epochs * per_epoch
@@ -271,13 +340,20 @@ def train_box_refiner(crops: BoxCrops, config: BoxRefinerConfig = BoxRefinerConf
                                                 pct_start=0.1)
     t0 = time.perf_counter()
 
-    def held_out() -> float:
+    has_edges = np.isfinite(crops.edges[val][:, 0])
+
+    def held_out() -> tuple[float, float | None]:
+        """Held-out mean |edge error| (crops with edges) and the quality's correlation."""
         net.eval()
         with torch.no_grad():
             pred = torch.cat([net(torch.from_numpy(normalize_crops(crops.crops[val[i:i + 1024]])))
                               for i in range(0, len(val), 1024)]).numpy()
         net.train()
-        return float(np.abs(pred - crops.edges[val]).mean())
+        l1 = float(np.abs(pred[has_edges, :4] - crops.edges[val][has_edges]).mean())
+        if not with_quality:
+            return l1, None
+        q = 1.0 / (1.0 + np.exp(-pred[:, 4]))
+        return l1, float(np.corrcoef(q, crops.quality[val])[0, 1])
 
     step = 0
     for epoch in range(config.epochs):
@@ -290,21 +366,28 @@ def train_box_refiner(crops: BoxCrops, config: BoxRefinerConfig = BoxRefinerConf
             x[flip] = x[flip, :, :, ::-1]
             y[flip] = np.column_stack([1 - y[flip, 2], y[flip, 1], 1 - y[flip, 0], y[flip, 3]])
             x *= np.exp(rng.normal(0.0, 0.2, (len(idx), 1, 1, 1))).astype(np.float32)
-            loss = nn.functional.smooth_l1_loss(net(torch.from_numpy(np.ascontiguousarray(x))),
-                                                torch.from_numpy(y), beta=0.02)
+            out = net(torch.from_numpy(np.ascontiguousarray(x)))
+            known = torch.from_numpy(np.isfinite(y[:, 0]))
+            loss = nn.functional.smooth_l1_loss(out[known, :4],
+                                                torch.from_numpy(y[known.numpy()]), beta=0.02)
+            if with_quality:
+                loss = loss + config.quality * nn.functional.binary_cross_entropy_with_logits(
+                    out[:, 4], torch.from_numpy(crops.quality[idx]))
             step += 1
             optimizer_step(loss, opt, sched, step)
             if log and step % 100 == 0:
                 log(f"epoch {epoch + 1}/{config.epochs}  step {step}/{steps}  "
                     f"{time.perf_counter() - t0:.0f} s  loss {loss.item():.4f}")
         if log:
-            log(f"epoch {epoch + 1}/{config.epochs}: held-out mean |edge error| {held_out():.4f} "
-                "of the crop")
-    before = float(np.abs(_input_edges(n_val) - crops.edges[val][:, [0, 2]]).mean())
-    after = held_out()
+            l1, corr = held_out()
+            log(f"epoch {epoch + 1}/{config.epochs}: held-out mean |edge error| {l1:.4f} of the "
+                "crop" + ("" if corr is None else f"; quality vs IoU r = {corr:.3f}"))
+    before = float(np.abs(_input_edges(int(has_edges.sum()))
+                          - crops.edges[val][has_edges][:, [0, 2]]).mean())
+    after, corr = held_out()
     net.eval()
     return net, BoxRefinerReport(len(train), n_val, before, after, steps,
-                                 time.perf_counter() - t0)
+                                 time.perf_counter() - t0, corr)
 
 
 def export_box_refiner(net: BoxRefinerNet, path: str | Path, extra: dict | None = None,
@@ -313,8 +396,13 @@ def export_box_refiner(net: BoxRefinerNet, path: str | Path, extra: dict | None 
     from lunarnav_ml.export.onnx_export import trace_module
 
     axes = {CROPS_NAME: {0: "batch"}, EDGES_NAME: {0: "batch"}}
-    model = trace_module(net.eval(), torch.zeros(1, 1, CROP_H, CROP_W), CROPS_NAME, EDGES_NAME,
-                         axes, opset)
+    if net.quality:  # edges and quality
+        axes[QUALITY_NAME] = {0: "batch"}
+        model = trace_module(_Exported(net).eval(), torch.zeros(1, 1, CROP_H, CROP_W),
+                             CROPS_NAME, [EDGES_NAME, QUALITY_NAME], axes, opset)
+    else:
+        model = trace_module(net.eval(), torch.zeros(1, 1, CROP_H, CROP_W), CROPS_NAME,
+                             EDGES_NAME, axes, opset)
     props = {"lunarnav.kind": KIND, "lunarnav.crop": f"{CROP_W},{CROP_H}",
              "lunarnav.project_version": __version__, **(extra or {})}
     return _save(model, props, path)

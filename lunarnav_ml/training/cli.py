@@ -153,6 +153,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "beside thousands of renders")
     p.add_argument("--seed", type=int, default=None,
                    help="seed of the jitters, the split and the weights (default 0)")
+    p.add_argument("--quality", type=float, default=None,
+                   help="weight of a fifth output, the refined box's IoU with its label, "
+                        "learnt also from the detections off every label; detection then "
+                        "scores each crater sqrt(score x quality) (default 0: no such output)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train_box_refiner)
@@ -163,7 +167,7 @@ def run_train_box_refiner(args: argparse.Namespace) -> int:
     from lunarnav_ml.training.box_refiner import BoxRefinerConfig, run
     from lunarnav_ml.utils.atomic import check_destination
 
-    given = {k: getattr(args, k) for k in ("epochs", "batch", "label_jitters", "seed")}
+    given = {k: getattr(args, k) for k in ("epochs", "batch", "label_jitters", "seed", "quality")}
     config = BoxRefinerConfig(**{k: v for k, v in given.items() if v is not None})
     detections = ([None if str(d).lower() == "none" else d for d in args.detections]
                   if args.detections is not None else [None] * len(args.datasets))
@@ -173,8 +177,9 @@ def run_train_box_refiner(args: argparse.Namespace) -> int:
                  repeats=args.repeats)
     print(f"lunarnav train-box-refiner: {report.n_train} training crops, {report.steps} steps "
           f"in {report.seconds:.0f} s; held-out mean |edge error| {report.refined_l1:.4f} of "
-          f"the crop (the input boxes' side edges {report.input_l1:.4f}; {report.n_val} crops) "
-          f"-> {args.out}")
+          f"the crop (the input boxes' side edges {report.input_l1:.4f}; {report.n_val} crops)"
+          + ("" if report.quality_corr is None
+             else f"; quality vs IoU r = {report.quality_corr:.3f}") + f" -> {args.out}")
     return 0
 
 

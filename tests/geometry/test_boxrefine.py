@@ -178,17 +178,34 @@ def test_refined_boxes_are_clipped_to_the_image():
     detector's boxes and the labels do."""
 
     class Outward:
-        def __call__(self, gray, xywh):
-            return xywh + np.array([-50.0, -50.0, 100.0, 100.0])
+        def refine_scored(self, gray, xywh):
+            return xywh + np.array([-50.0, -50.0, 100.0, 100.0]), None
 
     det = BoxRefinedDetector(_FixedDetector([[10.0, 20.0, 60.0, 40.0]], [0.9], [1]), Outward())
     out = det.predict([np.zeros((80, 120, 3), np.uint8)])[0]
     assert out["boxes"].tolist() == [[0.0, 0.0, 110.0, 80.0]]
 
 
-def _export(tmp_path, name, **props):
+def test_quality_rescores_crater_boxes_and_orders_by_score():
+    """A refiner with a quality output: each crater scores sqrt(score x quality) and the
+    output is by score again; a rock keeps its score."""
+
+    class Scoring:
+        def refine_scored(self, gray, xywh):
+            return xywh, np.array([0.1, 0.9], np.float32)
+
+    boxes = [[10.0, 10.0, 50.0, 30.0], [100.0, 10.0, 150.0, 30.0], [10.0, 60.0, 40.0, 80.0]]
+    det = BoxRefinedDetector(_FixedDetector(boxes, [0.9, 0.5, 0.4], [1, 1, 2]), Scoring())
+    out = det.predict([np.zeros((100, 200, 3), np.uint8)])[0]
+    assert out["scores"].tolist() == pytest.approx([np.sqrt(0.45), 0.4, np.sqrt(0.09)])
+    assert out["labels"].tolist() == [1, 2, 1]
+    assert out["boxes"].tolist() == [boxes[1], boxes[2], boxes[0]]
+    assert out["box_refined"].tolist() == [True, False, True]
+
+
+def _export(tmp_path, name, quality=False, **props):
     torch.manual_seed(0)
-    return export_box_refiner(BoxRefinerNet(), tmp_path / name, props)
+    return export_box_refiner(BoxRefinerNet(quality=quality), tmp_path / name, props)
 
 
 def test_refiner_file_errors(tmp_path):
@@ -224,6 +241,23 @@ def test_export_matches_torch(tmp_path):
     want = decode_edges(edges, frames)
     ok = (want[:, 2] >= 2) & (want[:, 3] >= 1)  # others are kept as given
     np.testing.assert_allclose(ref(gray, boxes)[ok], want[ok], rtol=1e-4, atol=1e-3)
+    assert not ref.has_quality and ref.refine_scored(gray, boxes)[1] is None
+
+
+def test_export_with_quality_matches_torch(tmp_path):
+    ref = BoxRefiner(_export(tmp_path, "q.onnx", quality=True))
+    assert ref.has_quality
+    torch.manual_seed(0)
+    net = BoxRefinerNet(quality=True).eval()
+    rng = np.random.default_rng(3)
+    gray = rng.integers(0, 256, (200, 300)).astype(np.uint8)
+    boxes = np.array([[50.0, 60.0, 120.0, 25.0], [10.0, 150.0, 40.0, 12.0]])
+    with torch.no_grad():
+        out = net(torch.from_numpy(normalize_crops(cut_crops(gray, crop_frames(boxes))))).numpy()
+    refined, quality = ref.refine_scored(gray, boxes)
+    assert quality.shape == (2,) and quality.dtype == np.float32
+    np.testing.assert_allclose(quality, 1 / (1 + np.exp(-out[:, 4])), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(ref(gray, boxes), refined)  # the lift reads the same edges
 
 
 @pytest.fixture(scope="module")
@@ -277,9 +311,32 @@ def test_training_learns_and_is_seeded(labelled_set):
         assert torch.equal(a, b)
 
 
+def test_quality_crops_and_training(labelled_set):
+    """With a quality weight the unmatched detection (off every label) adds a crop for the
+    quality output only, every crop's target is its box's best IoU with a label, and the
+    trained output ranks the crater's crops above the one off it."""
+    cfg = BoxRefinerConfig(**SMALL, quality=1.0)
+    dets = labelled_set / "detections.json"
+    plain = build_crops([labelled_set], [dets], BoxRefinerConfig(**SMALL), progress=False)
+    crops = build_crops([labelled_set], [dets], cfg, progress=False)
+    assert len(crops) == len(plain) + 1 and crops.quality.shape == (len(crops),)
+    off = ~np.isfinite(crops.edges[:, 0])
+    assert off.sum() == 1 and crops.quality[off][0] < 0.3
+    assert (crops.quality[~off] > 0.3).mean() > 0.9  # jittered labels and matched detections
+    assert len(build_crops([labelled_set], [dets], cfg, progress=False, repeats=[3])) \
+        == 3 * len(crops)
+    net, report = train_box_refiner(crops, cfg, log=None)
+    assert report.quality_corr is not None and np.isfinite(report.refined_l1)
+    with torch.no_grad():
+        q = torch.sigmoid(net(torch.from_numpy(normalize_crops(crops.crops)))[:, 4]).numpy()
+    assert q[off][0] < np.median(q[~off])
+    with pytest.raises(InputError, match="no quality targets"):
+        train_box_refiner(plain, cfg, log=None)
+
+
 def test_config_and_data_checks(labelled_set, tmp_path):
     for bad in ({"epochs": 0}, {"label_jitter": 0.7}, {"det_jitters": -1}, {"lr": 0.0},
-                {"val_fraction": 0.6}):
+                {"val_fraction": 0.6}, {"quality": -1.0}, {"quality": float("nan")}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             BoxRefinerConfig(**bad)
     with pytest.raises(ConfigError, match="one results file"):
@@ -301,7 +358,12 @@ def test_cli_train_then_eval_and_errors(labelled_set, tmp_path, capsys):
                  "--out", str(out), "--epochs", "1", "--batch", "4", "--label-jitters", "8",
                  "--quiet", "--threads", "1"]) == 0
     assert "held-out mean |edge error|" in capsys.readouterr().out
-    BoxRefiner(out)
+    assert not BoxRefiner(out).has_quality
+    assert main(["train-box-refiner", str(labelled_set), "--detections", str(dets),
+                 "--out", str(tmp_path / "q.onnx"), "--epochs", "1", "--batch", "4",
+                 "--label-jitters", "8", "--quality", "0.1", "--quiet", "--threads", "1"]) == 0
+    assert "quality vs IoU r = " in capsys.readouterr().out
+    assert BoxRefiner(tmp_path / "q.onnx").has_quality
     for extra, want in ((["--box-refiner", str(out)], str(out)), ([], str(DEFAULT_BOX_REFINER)),
                         (["--box-refiner"], str(DEFAULT_BOX_REFINER)),
                         (["--no-box-refiner"], None)):  # on by default
