@@ -14,8 +14,8 @@ spread (:func:`normalize_crops`), and the net returns the box's left, top, right
 edges as fractions of the crop (:func:`decode_edges`).
 
 A refiner trained with a quality output (``train-box-refiner --quality W``) also returns, per
-crop, its estimate of the IoU of the refined box with the crater's label box (``quality``, in
-[0, 1]). :class:`BoxRefinedDetector` then scores each crater sqrt(score x quality): the boxes
+crop, its estimate of the IoU of the box the crop was cut around (the detector's) with the
+best crater label (``quality``, in [0, 1]). :class:`BoxRefinedDetector` then scores each crater sqrt(score x quality): the boxes
 that set the operating threshold's false alarms sit on craters at IoU 0.2-0.5, and the
 detector's score does not rank them below the well-placed ones.
 
@@ -39,7 +39,7 @@ CRATER_LABEL = 1  # the category whose boxes are refined
 REFINED_KEY = "box_refined"  # marks a COCO result whose box was refined already
 CROPS_NAME = "crops"
 EDGES_NAME = "edges"
-QUALITY_NAME = "quality"  # optional output: the refined box's IoU with the label, estimated
+QUALITY_NAME = "quality"  # optional output: the input box's IoU with a label, estimated
 CROP_W, CROP_H = 128, 64
 DEFAULT_BOX_REFINER = Path(__file__).resolve().parents[1] / "weights" / "box_refiner.onnx"
 
@@ -161,7 +161,7 @@ class BoxRefiner:
     def refine_scored(self, gray: np.ndarray, boxes_xywh: np.ndarray, quality: bool = True
                       ) -> tuple[np.ndarray, np.ndarray | None]:
         """:meth:`__call__`'s boxes and, from a file with the quality output (and ``quality``),
-        each refined box's estimated IoU with its crater's label (K,) float32 in [0, 1];
+        each input box's estimated IoU with its best crater label (K,) float32 in [0, 1];
         otherwise None."""
         if not isinstance(gray, np.ndarray) or gray.ndim != 2 or gray.dtype != np.uint8:
             raise InputError(f"image: expected a uint8 gray image (H, W), got "

@@ -390,9 +390,56 @@ def train_box_refiner(crops: BoxCrops, config: BoxRefinerConfig = BoxRefinerConf
                                  time.perf_counter() - t0, corr)
 
 
+def with_edges_from(model: Any, edges_path: str | Path) -> tuple[Any, dict[str, str]]:
+    """One ONNX model whose ``edges`` are the box refiner ``edges_path``'s and whose
+    ``quality`` is ``model``'s (a quality refiner's; its own edges dropped), both read from the
+    same ``crops``; and the metadata that records it (``lunarnav.edges_from``: that file's
+    name and training record). A lift with the result moves boxes exactly as with
+    ``edges_path``.
+
+    Raises:
+        InputError: ``edges_path`` is not a box refiner; ``model`` has no quality output; the two
+            were written with other ONNX opsets or IR versions.
+    """
+    import onnx
+
+    from lunarnav_ml.geometry.boxrefine import BoxRefiner
+
+    BoxRefiner(edges_path)  # a box refiner with this version's crops, or a one-line error
+    base = onnx.load(str(edges_path))
+    if QUALITY_NAME not in [o.name for o in model.graph.output]:
+        raise InputError("edges_from: the trained net has no quality output (give --quality)")
+    opsets = [sorted((o.domain, o.version) for o in m.opset_import) for m in (base, model)]
+    if opsets[0] != opsets[1] or base.ir_version != model.ir_version:
+        raise InputError(f"{edges_path}: written with opsets {opsets[0]} (IR {base.ir_version}); "
+                         f"the trained net with {opsets[1]} (IR {model.ir_version})")
+    graph = onnx.compose.add_prefix(model, "quality/").graph  # no name clashes with the base
+    needed, nodes = {f"quality/{QUALITY_NAME}"}, []
+    for node in reversed(graph.node):  # only what the quality output reads
+        if needed.intersection(node.output):
+            nodes.insert(0, node)
+            needed.update(node.input)
+    merged = onnx.helper.make_graph(
+        [*base.graph.node, onnx.helper.make_node("Identity", [CROPS_NAME],
+                                                 [f"quality/{CROPS_NAME}"]),
+         *nodes, onnx.helper.make_node("Identity", [f"quality/{QUALITY_NAME}"],
+                                       [QUALITY_NAME])],
+        base.graph.name, list(base.graph.input),
+        [*base.graph.output, next(o for o in model.graph.output if o.name == QUALITY_NAME)],
+        [*base.graph.initializer, *(t for t in graph.initializer if t.name in needed)])
+    out = onnx.helper.make_model(merged, opset_imports=list(base.opset_import),
+                                 ir_version=base.ir_version)
+    onnx.checker.check_model(out, full_check=True)
+    props = {p.key: p.value for p in base.metadata_props}
+    record = {"file": Path(edges_path).name,
+              "training": json.loads(props.get("lunarnav.training", "null"))}
+    return out, {"lunarnav.edges_from": json.dumps(record)}
+
+
 def export_box_refiner(net: BoxRefinerNet, path: str | Path, extra: dict | None = None,
-                       opset: int = 17) -> Path:
-    """Write ``net`` as an ONNX box refiner (dynamic batch) with its metadata, atomically."""
+                       opset: int = 17, edges_from: str | Path | None = None) -> Path:
+    """Write ``net`` as an ONNX box refiner (dynamic batch) with its metadata, atomically;
+    with ``edges_from``, the edges are that file's (:func:`with_edges_from`)."""
     from lunarnav_ml.export.onnx_export import trace_module
 
     axes = {CROPS_NAME: {0: "batch"}, EDGES_NAME: {0: "batch"}}
@@ -405,13 +452,25 @@ def export_box_refiner(net: BoxRefinerNet, path: str | Path, extra: dict | None 
                              EDGES_NAME, axes, opset)
     props = {"lunarnav.kind": KIND, "lunarnav.crop": f"{CROP_W},{CROP_H}",
              "lunarnav.project_version": __version__, **(extra or {})}
+    if edges_from is not None:
+        model, more = with_edges_from(model, edges_from)
+        props.update(more)
     return _save(model, props, path)
 
 
 def run(datasets: Sequence[str | Path], detections: Sequence[str | Path | None],
         out: str | Path, config: BoxRefinerConfig, progress: bool = True,
-        repeats: Sequence[int] | None = None) -> BoxRefinerReport:
-    """Crops, training and export: what ``lunarnav train-box-refiner`` does."""
+        repeats: Sequence[int] | None = None, edges_from: str | Path | None = None
+        ) -> BoxRefinerReport:
+    """Crops, training and export: what ``lunarnav train-box-refiner`` does (``edges_from``:
+    the file's edges are that refiner's, :func:`with_edges_from`)."""
+    if edges_from is not None:
+        if config.quality <= 0:
+            raise ConfigError("edges_from: keeps another file's edges beside a quality output; "
+                              "give a quality weight (--quality W)")
+        from lunarnav_ml.geometry.boxrefine import BoxRefiner
+
+        BoxRefiner(edges_from)  # checked before the crops, not after the training
     crops = build_crops(datasets, detections, config, progress, repeats)
     print(f"{len(crops)} crops from {len(datasets)} set(s)", flush=True)
     net, report = train_box_refiner(crops, config, log=(lambda s: print(s, flush=True)))
@@ -420,5 +479,5 @@ def run(datasets: Sequence[str | Path], detections: Sequence[str | Path | None],
         "detections": [None if d is None else str(d) for d in detections],
         "repeats": list(repeats) if repeats is not None else [1] * len(datasets),
         **asdict(config), **asdict(report)})}
-    export_box_refiner(net, out, meta)
+    export_box_refiner(net, out, meta, edges_from=edges_from)
     return report

@@ -154,9 +154,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=None,
                    help="seed of the jitters, the split and the weights (default 0)")
     p.add_argument("--quality", type=float, default=None,
-                   help="weight of a fifth output, the refined box's IoU with its label, "
+                   help="weight of a fifth output, the input box's IoU with its label, "
                         "learnt also from the detections off every label; detection then "
                         "scores each crater sqrt(score x quality) (default 0: no such output)")
+    p.add_argument("--edges-from", type=Path, default=None,
+                   help="with --quality: write this box refiner's edges beside the trained "
+                        "quality output (one file; the lift then moves boxes as with it)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train_box_refiner)
@@ -174,7 +177,7 @@ def run_train_box_refiner(args: argparse.Namespace) -> int:
     check_destination(args.out)  # build_crops checks one results file per set
     set_torch_threads(args.threads)
     report = run(args.datasets, detections, args.out, config, progress=not args.quiet,
-                 repeats=args.repeats)
+                 repeats=args.repeats, edges_from=args.edges_from)
     print(f"lunarnav train-box-refiner: {report.n_train} training crops, {report.steps} steps "
           f"in {report.seconds:.0f} s; held-out mean |edge error| {report.refined_l1:.4f} of "
           f"the crop (the input boxes' side edges {report.input_l1:.4f}; {report.n_val} crops)"

@@ -260,6 +260,37 @@ def test_export_with_quality_matches_torch(tmp_path):
     np.testing.assert_allclose(ref(gray, boxes), refined)  # the lift reads the same edges
 
 
+def test_edges_from_another_refiner(tmp_path):
+    """One file: another refiner's edges, bit for bit (the lift moves boxes as with it), and the
+    quality net's quality; a net without quality, or a file that is no refiner, is refused."""
+    edges_file = _export(tmp_path, "edges.onnx")
+    torch.manual_seed(1)
+    qnet = BoxRefinerNet(quality=True)
+    both = export_box_refiner(qnet, tmp_path / "both.onnx", edges_from=edges_file)
+    alone = export_box_refiner(qnet, tmp_path / "alone.onnx")
+    rng = np.random.default_rng(4)
+    gray = rng.integers(0, 256, (200, 300)).astype(np.uint8)
+    boxes = np.array([[50.0, 60.0, 120.0, 25.0], [10.0, 150.0, 40.0, 12.0], [200, 20, 60, 30]])
+    crops = {"crops": normalize_crops(cut_crops(gray, crop_frames(boxes)))}
+
+    def raw(path):  # the edges as the net gives them (untrained nets' boxes are kept as given)
+        return BoxRefiner(path).session.run(None, crops)
+
+    merged, base, own = raw(both), raw(edges_file), raw(alone)
+    assert np.array_equal(merged[0], base[0]) and not np.array_equal(merged[0], own[0])
+    np.testing.assert_array_equal(merged[1], own[1])
+    assert BoxRefiner(both).has_quality
+    meta = onnx.load(str(both)).metadata_props
+    assert json.loads(next(p.value for p in meta if p.key == "lunarnav.edges_from"))[
+        "file"] == "edges.onnx"
+    with pytest.raises(InputError, match="no quality output"):
+        export_box_refiner(BoxRefinerNet(), tmp_path / "x.onnx", edges_from=edges_file)
+    with pytest.raises(InputError, match="not a box refiner"):
+        export_box_refiner(qnet, tmp_path / "x.onnx",
+                           edges_from=DEFAULT_BOX_REFINER.with_name("disparity_refiner.onnx"))
+    assert not (tmp_path / "x.onnx").exists()
+
+
 @pytest.fixture(scope="module")
 def labelled_set(tmp_path_factory, crater_scene):
     root = tmp_path_factory.mktemp("boxref_ds")
@@ -364,6 +395,13 @@ def test_cli_train_then_eval_and_errors(labelled_set, tmp_path, capsys):
                  "--label-jitters", "8", "--quality", "0.1", "--quiet", "--threads", "1"]) == 0
     assert "quality vs IoU r = " in capsys.readouterr().out
     assert BoxRefiner(tmp_path / "q.onnx").has_quality
+    assert main(["train-box-refiner", str(labelled_set), "--detections", str(dets),
+                 "--out", str(tmp_path / "qb.onnx"), "--epochs", "1", "--batch", "4",
+                 "--label-jitters", "8", "--quality", "0.1", "--edges-from", str(out),
+                 "--quiet", "--threads", "1"]) == 0
+    gray = np.full((100, 200), 90, np.uint8)
+    box = np.array([[40.0, 30.0, 60.0, 20.0]])
+    assert np.array_equal(BoxRefiner(tmp_path / "qb.onnx")(gray, box), BoxRefiner(out)(gray, box))
     for extra, want in ((["--box-refiner", str(out)], str(out)), ([], str(DEFAULT_BOX_REFINER)),
                         (["--box-refiner"], str(DEFAULT_BOX_REFINER)),
                         (["--no-box-refiner"], None)):  # on by default
@@ -383,9 +421,14 @@ def test_cli_train_then_eval_and_errors(labelled_set, tmp_path, capsys):
                  str(tmp_path / "missing.json"), "--out", str(bad), "--quiet"]) == 2
     assert main(["train-box-refiner", str(labelled_set), "--repeats", "1", "2",
                  "--out", str(bad), "--quiet"]) == 2
+    assert main(["train-box-refiner", str(labelled_set), "--edges-from", str(out),
+                 "--out", str(bad), "--quiet"]) == 2
+    assert main(["train-box-refiner", str(labelled_set), "--quality", "0.1", "--edges-from",
+                 str(tmp_path / "none.onnx"), "--out", str(bad), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 3 and "one results file" in err[0] and "missing.json" in err[1]
+    assert len(err) == 5 and "one results file" in err[0] and "missing.json" in err[1]
     assert "repeats: one positive integer per set" in err[2]
+    assert "give a quality weight" in err[3] and "none.onnx: box refiner not found" in err[4]
     refined = tmp_path / "refined.json"
     refined.write_text(json.dumps([{**r, "box_refined": True} if r["category_id"] == 1 else r
                                    for r in json.loads(dets.read_text())]))
