@@ -15,9 +15,10 @@ edges as fractions of the crop (:func:`decode_edges`).
 
 A refiner trained with a quality output (``train-box-refiner --quality W``) also returns, per
 crop, its estimate of the IoU of the box the crop was cut around (the detector's) with the
-best crater label (``quality``, in [0, 1]). :class:`BoxRefinedDetector` then scores each crater sqrt(score x quality): the boxes
-that set the operating threshold's false alarms sit on craters at IoU 0.2-0.5, and the
-detector's score does not rank them below the well-placed ones.
+best crater label (``quality``, in [0, 1]). :class:`BoxRefinedDetector` then scores each
+crater sqrt(score x quality): the boxes that set the operating threshold's false alarms sit on
+craters at IoU 0.2-0.5, and the detector's score does not rank them below the well-placed
+ones.
 
 The ONNX file carries ``lunarnav.kind = box_refiner`` and ``lunarnav.crop`` (``"W,H"``).
 """
