@@ -232,9 +232,18 @@ class BoxRefinedDetector:
                 iou_thres: float = 0.6, max_det: int = 300) -> list[dict[str, np.ndarray]]:
         """The wrapped detector's output per image (``{"boxes" (N, 4) xyxy px, "scores",
         "labels"}``, highest score first) with the crater boxes refined (and rescored, by a
-        refiner with a quality output), plus ``"box_refined"`` (N,) bool."""
-        preds = self.predictor.predict(images, conf_thres, iou_thres, max_det)
-        return [self.refine(image, pred, iou_thres) for image, pred in zip(images, preds)]
+        refiner with a quality output), plus ``"box_refined"`` (N,) bool.
+
+        With a quality output ``conf_thres`` holds for the final scores: the wrapped detector
+        runs at ``conf_thres`` squared (sqrt(score x quality) >= t needs score >= t^2, quality
+        being at most 1), and what ends below ``conf_thres`` is dropped."""
+        rescored = bool(getattr(self.refiner, "has_quality", False))
+        preds = self.predictor.predict(images, conf_thres ** 2 if rescored else conf_thres,
+                                       iou_thres, max_det)
+        out = [self.refine(image, pred, iou_thres) for image, pred in zip(images, preds)]
+        if rescored:
+            out = [{k: v[pred["scores"] >= conf_thres] for k, v in pred.items()} for pred in out]
+        return out
 
     def refine(self, image: np.ndarray, pred: dict[str, np.ndarray], iou_thres: float
                ) -> dict[str, np.ndarray]:

@@ -150,8 +150,14 @@ def test_refined_detector_moves_crater_boxes_and_suppresses_their_repeats(shippe
     assert det.img_size == 384  # the wrapped detector's attributes
     rgb = np.repeat(gray[:, :, None], 3, axis=2)
     out = det.predict([rgb], conf_thres=0.01, iou_thres=0.5)[0]
-    assert inner.calls == [(0.01, 0.5, 300)]
-    assert out["labels"].tolist() == [1, 2] and out["scores"].tolist() == pytest.approx([0.9, 0.7])
+    assert inner.calls == [(pytest.approx(0.01 ** 2), 0.5, 300)]  # rescored: conf squared
+    # the shipped file estimates the box's IoU with its crater: the score is sqrt(score x that)
+    assert shipped.has_quality
+    quality = shipped.refine_scored(gray, np.array([[near[0], near[1], near[2] - near[0],
+                                                     near[3] - near[1]]]))[1][0]
+    assert 0.3 < quality <= 1.0
+    assert out["labels"].tolist() == [1, 2]
+    assert out["scores"].tolist() == pytest.approx([np.sqrt(0.9 * quality), 0.7], rel=1e-5)
     assert out["box_refined"].tolist() == [True, False]
     assert out["boxes"][1].tolist() == rock
     truth = np.array([[x, y, w, h]])
@@ -191,16 +197,24 @@ def test_quality_rescores_crater_boxes_and_orders_by_score():
     output is by score again; a rock keeps its score."""
 
     class Scoring:
+        has_quality = True
+
         def refine_scored(self, gray, xywh):
             return xywh, np.array([0.1, 0.9], np.float32)
 
     boxes = [[10.0, 10.0, 50.0, 30.0], [100.0, 10.0, 150.0, 30.0], [10.0, 60.0, 40.0, 80.0]]
-    det = BoxRefinedDetector(_FixedDetector(boxes, [0.9, 0.5, 0.4], [1, 1, 2]), Scoring())
+    inner = _FixedDetector(boxes, [0.9, 0.5, 0.4], [1, 1, 2])
+    det = BoxRefinedDetector(inner, Scoring())
     out = det.predict([np.zeros((100, 200, 3), np.uint8)])[0]
     assert out["scores"].tolist() == pytest.approx([np.sqrt(0.45), 0.4, np.sqrt(0.09)])
     assert out["labels"].tolist() == [1, 2, 1]
     assert out["boxes"].tolist() == [boxes[1], boxes[2], boxes[0]]
     assert out["box_refined"].tolist() == [True, False, True]
+    # a threshold holds for the final scores; the detector ran at its square
+    out = det.predict([np.zeros((100, 200, 3), np.uint8)], conf_thres=0.5)[0]
+    assert inner.calls[-1][0] == pytest.approx(0.25)
+    assert out["scores"].tolist() == pytest.approx([np.sqrt(0.45)])
+    assert out["labels"].tolist() == [1] and out["box_refined"].tolist() == [True]
 
 
 def _export(tmp_path, name, quality=False, **props):
