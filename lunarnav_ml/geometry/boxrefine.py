@@ -248,11 +248,13 @@ class BoxRefinedDetector:
     def refine(self, image: np.ndarray, pred: dict[str, np.ndarray], iou_thres: float
                ) -> dict[str, np.ndarray]:
         """One image's detections with their crater boxes refined (and rescored) and NMS at
-        ``iou_thres`` run again per class; by score again."""
+        ``iou_thres`` run again per class; by score again. An empty crater box (no width or
+        height, as a clip to the frame's edge can leave) stays as it was."""
         boxes = np.asarray(pred["boxes"], np.float64).reshape(-1, 4).copy()
         scores = np.asarray(pred["scores"], np.float32).reshape(-1)
         labels = np.asarray(pred["labels"]).reshape(-1)
-        crater = labels == CRATER_LABEL
+        crater = (labels == CRATER_LABEL) & np.isfinite(boxes).all(axis=1) \
+            & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])  # an empty box stays
         if crater.any():
             gray = as_image("image", image)
             xywh = np.column_stack([boxes[crater, :2], boxes[crater, 2:] - boxes[crater, :2]])

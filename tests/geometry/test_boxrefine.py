@@ -202,14 +202,15 @@ def test_quality_rescores_crater_boxes_and_orders_by_score():
         def refine_scored(self, gray, xywh):
             return xywh, np.array([0.1, 0.9], np.float32)
 
-    boxes = [[10.0, 10.0, 50.0, 30.0], [100.0, 10.0, 150.0, 30.0], [10.0, 60.0, 40.0, 80.0]]
-    inner = _FixedDetector(boxes, [0.9, 0.5, 0.4], [1, 1, 2])
+    boxes = [[10.0, 10.0, 50.0, 30.0], [100.0, 10.0, 150.0, 30.0], [10.0, 60.0, 40.0, 80.0],
+             [199.0, 50.0, 199.0, 70.0]]  # the last one empty (clipped at the right edge)
+    inner = _FixedDetector(boxes, [0.9, 0.5, 0.4, 0.2], [1, 1, 2, 1])
     det = BoxRefinedDetector(inner, Scoring())
     out = det.predict([np.zeros((100, 200, 3), np.uint8)])[0]
-    assert out["scores"].tolist() == pytest.approx([np.sqrt(0.45), 0.4, np.sqrt(0.09)])
-    assert out["labels"].tolist() == [1, 2, 1]
-    assert out["boxes"].tolist() == [boxes[1], boxes[2], boxes[0]]
-    assert out["box_refined"].tolist() == [True, False, True]
+    assert out["scores"].tolist() == pytest.approx([np.sqrt(0.45), 0.4, np.sqrt(0.09), 0.2])
+    assert out["labels"].tolist() == [1, 2, 1, 1]
+    assert out["boxes"].tolist() == [boxes[1], boxes[2], boxes[0], boxes[3]]
+    assert out["box_refined"].tolist() == [True, False, True, False]
     # a threshold holds for the final scores; the detector ran at its square
     out = det.predict([np.zeros((100, 200, 3), np.uint8)], conf_thres=0.5)[0]
     assert inner.calls[-1][0] == pytest.approx(0.25)
