@@ -127,12 +127,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_train_refiner)
 
     p = subparsers.add_parser(
-        "train-box-refiner", help="train the crater-box refiner of the 3D lift",
+        "train-box-refiner", help="train the crater-box refiner of detection and the 3D lift",
         description="Cuts full-resolution crops around crater labels (jittered) and around a "
                     "detector's crater boxes, trains the small net that moves a box's edges "
-                    "onto the labelled rim's box and exports it as ONNX, for 'lunarnav localize "
-                    "--box-refiner' and 'lunarnav eval --task geometry --box-refiner' "
-                    "(docs/geometry.md).")
+                    "onto the labelled rim's box (with --quality, also estimates the box's IoU "
+                    "with a crater) and exports it as ONNX, for the --box-refiner of 'lunarnav "
+                    "detect', 'lunarnav eval' and 'lunarnav localize' (docs/geometry.md).")
     p.add_argument("datasets", type=Path, nargs="+",
                    help="COCO sets with crater labels: folders with annotations.json (or one "
                         "annotations*.json shard), or the files. Use development sets, not a "
