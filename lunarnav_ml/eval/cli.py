@@ -178,7 +178,8 @@ def run_detection(args: argparse.Namespace) -> int:
         if args.test_results is None and args.box_refiner is not None:
             from lunarnav_ml.geometry.boxrefine import refined_by
 
-            notes.append(refined_by(None if args.box_refiner == SHIPPED else args.box_refiner))
+            notes.append(refined_by(None if args.box_refiner == SHIPPED else args.box_refiner,
+                                    load_box_refiner(args).has_quality))
         write_report(metrics, work, f"Detection report: {args.test_gt}"
                      + (f" ({'; '.join(notes)})" if notes else ""))
         write_overlays(gt, results, threshold, Path(args.test_gt).parent, work / "overlays",

@@ -111,10 +111,12 @@ def decode_edges(edges: np.ndarray, frames: np.ndarray) -> np.ndarray:
     return np.column_stack([x0, y0, x1 - x0, y1 - y0])
 
 
-def refined_by(path: str | os.PathLike | None) -> str:
-    """The report-title phrase for boxes refined by ``path`` (None: the shipped file)."""
+def refined_by(path: str | os.PathLike | None, rescored: bool = False) -> str:
+    """The report-title phrase for boxes refined (``rescored``: and rescored by the quality
+    output) by ``path`` (None: the shipped file)."""
     shipped = path is None or Path(path).resolve() == DEFAULT_BOX_REFINER
-    return "crater boxes refined by " + ("the shipped box refiner" if shipped else str(path))
+    return ("crater boxes refined and rescored by " if rescored else "crater boxes refined by ") \
+        + ("the shipped box refiner" if shipped else str(path))
 
 
 class BoxRefiner:
@@ -227,7 +229,8 @@ class BoxRefinedDetector:
     def describe(self) -> str:
         """One line for report titles."""
         inner = getattr(self.predictor, "describe", None)
-        return (inner() + "; " if callable(inner) else "") + refined_by(self.refiner.path)
+        return (inner() + "; " if callable(inner) else "") + refined_by(
+            self.refiner.path, bool(getattr(self.refiner, "has_quality", False)))
 
     def predict(self, images: list[np.ndarray], conf_thres: float = 0.001,
                 iou_thres: float = 0.6, max_det: int = 300) -> list[dict[str, np.ndarray]]:

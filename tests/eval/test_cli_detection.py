@@ -40,7 +40,7 @@ def test_crater_boxes_refined_by_default_and_said_in_the_report(tmp_path, onnx_p
         assert main([*common, *extra, "--out", str(tmp_path / name)]) == 0
         runs[name] = json.loads((tmp_path / name / "detections.json").read_text())
     title = (tmp_path / "on" / "report.md").read_text().splitlines()[0]
-    assert title.endswith("(crater boxes refined by the shipped box refiner)")
+    assert title.endswith("(crater boxes refined and rescored by the shipped box refiner)")
     assert (tmp_path / "off" / "report.md").read_text().splitlines()[0].endswith("annotations.json")
     craters = [r for r in runs["on"] if r["category_id"] == 1]
     assert craters and all(r.get("box_refined") for r in craters)
