@@ -16,6 +16,7 @@ import argparse
 import dataclasses
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -136,8 +137,10 @@ def load_predictor(path: Path, threads: int, img_size: int | None = None,
     return predictor if tta is None else TTAPredictor(predictor, tta)
 
 
-def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]]:
-    """Ground truth and detections of one split, from a results file or by running the model."""
+def _results_for(args: argparse.Namespace, split: str, model: Callable[[], Any]
+                 ) -> tuple[dict, list[dict]]:
+    """Ground truth and detections of one split, from a results file or by running the model
+    (``model()``: the predictor, loaded once for both splits)."""
     from lunarnav_ml.data.coco import read_coco
     from lunarnav_ml.eval.predict import predict_coco
 
@@ -148,9 +151,7 @@ def _results_for(args: argparse.Namespace, split: str) -> tuple[dict, list[dict]
         return gt, read_coco_results(results_path)
     if args.model is None:
         raise InputError(f"eval: give --model or --{split}-results for the {split} split")
-    predictor = with_box_refiner(load_predictor(args.model, args.threads, args.img_size,
-                                                tta_config(args)), args)
-    return gt, predict_coco(predictor, gt, gt_path.parent, desc=split, progress=not args.no_progress)
+    return gt, predict_coco(model(), gt, gt_path.parent, desc=split, progress=not args.no_progress)
 
 
 def run_detection(args: argparse.Namespace) -> int:
@@ -163,23 +164,31 @@ def run_detection(args: argparse.Namespace) -> int:
     if args.threshold is None and args.val_gt is None:
         raise InputError("eval: the operating threshold comes from a validation split: give "
                          "--val-gt (with --model or --val-results), or --threshold")
+    loaded: list[Any] = []  # the predictor, once a split runs the model
+
+    def model() -> Any:
+        if not loaded:
+            loaded.append(with_box_refiner(load_predictor(args.model, args.threads, args.img_size,
+                                                          tta_config(args)), args))
+        return loaded[0]
+
     threshold, val = args.threshold, None
     if threshold is None:
-        val = _results_for(args, "val")
+        val = _results_for(args, "val", model)
         threshold = pick_operating_threshold(*val, args.max_fa)
     same_split = (val is not None and args.test_results is None and args.val_results is None
                   and Path(args.val_gt).resolve() == Path(args.test_gt).resolve())
-    gt, results = val if same_split else _results_for(args, "test")  # one run per split
+    gt, results = val if same_split else _results_for(args, "test", model)  # one run per split
     metrics = detection_metrics(gt, results, threshold)
     with atomic.atomic_dir(args.out) as work:
         atomic.write_json(work / "detections.json", results, indent=None)
         tta = tta_config(args) if args.test_results is None else None
         notes = [tta.describe()] if tta else []
-        if args.test_results is None and args.box_refiner is not None:
+        refiner = getattr(loaded[0], "refiner", None) if args.test_results is None else None
+        if refiner is not None:  # the test split's boxes went through it
             from lunarnav_ml.geometry.boxrefine import refined_by
 
-            notes.append(refined_by(None if args.box_refiner == SHIPPED else args.box_refiner,
-                                    load_box_refiner(args).has_quality))
+            notes.append(refined_by(refiner.path, refiner.has_quality))
         write_report(metrics, work, f"Detection report: {args.test_gt}"
                      + (f" ({'; '.join(notes)})" if notes else ""))
         write_overlays(gt, results, threshold, Path(args.test_gt).parent, work / "overlays",
