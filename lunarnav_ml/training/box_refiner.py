@@ -149,31 +149,26 @@ class BoxCrops:
         return len(self.crops)
 
 
-def _label_boxes(anns: list[dict[str, Any]], path: Path) -> dict[int, np.ndarray]:
-    """Kept crater label boxes per image id, checked."""
-    out: dict[int, list[list[float]]] = {}
+def _label_boxes(anns: list[dict[str, Any]], path: Path
+                 ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+    """Crater label boxes per image id, checked: the kept ones (not ignored, 12 x 6 px or more:
+    the edges' targets) and every one (ignored and small too: the quality target's reference,
+    so that a box on an ignored crater is not taught as one off every rim)."""
+    kept: dict[int, list[list[float]]] = {}
+    every: dict[int, list[list[float]]] = {}
     for a in anns:
-        if a.get("category_id") != 1 or a.get("ignore") or a.get("iscrowd"):
+        if a.get("category_id") != 1:
             continue
         box = a.get("bbox")
         if not (isinstance(box, list) and len(box) == 4
                 and all(isinstance(v, int | float) and np.isfinite(v) for v in box)):
             raise InputError(f"{path}: annotation {a.get('id')}: bbox: expected 4 finite numbers, "
                              f"got {box!r}")
-        if box[2] >= 12 and box[3] >= 6:
-            out.setdefault(a["image_id"], []).append(box)
-    return {k: np.asarray(v, dtype=np.float64) for k, v in out.items()}
-
-
-def _all_crater_boxes(anns: list[dict[str, Any]]) -> dict[int, np.ndarray]:
-    """Every crater label box per image id (ignored and small ones too): the quality target's
-    reference, so that a box on an ignored crater is not taught as one off every rim."""
-    out: dict[int, list[list[float]]] = {}
-    for a in anns:
-        box = a.get("bbox")
-        if a.get("category_id") == 1 and isinstance(box, list) and len(box) == 4:
-            out.setdefault(a["image_id"], []).append(box)
-    return {k: np.asarray(v, dtype=np.float64) for k, v in out.items()}
+        every.setdefault(a["image_id"], []).append(box)
+        if not (a.get("ignore") or a.get("iscrowd")) and box[2] >= 12 and box[3] >= 6:
+            kept.setdefault(a["image_id"], []).append(box)
+    return ({k: np.asarray(v, dtype=np.float64) for k, v in kept.items()},
+            {k: np.asarray(v, dtype=np.float64) for k, v in every.items()})
 
 
 def _best_iou(boxes: np.ndarray, labels: np.ndarray | None) -> np.ndarray:
@@ -261,8 +256,7 @@ def build_crops(datasets: Sequence[str | Path], detections: Sequence[str | Path 
         n_label, n_det = config.label_jitters * times, (1 + config.det_jitters) * times - 1
         path = annotations_path(dataset)
         coco = read_json_file(path, "COCO annotations", dict)
-        labels = _label_boxes(coco.get("annotations", []), path)
-        every = _all_crater_boxes(coco.get("annotations", [])) if with_quality else {}
+        labels, every = _label_boxes(coco.get("annotations", []), path)
         dets = _detection_boxes(Path(det_path)) if det_path is not None else {}
         images = [im for im in coco.get("images", []) if im.get("id") in labels
                   or (with_quality and im.get("id") in dets)]
@@ -293,9 +287,10 @@ def build_crops(datasets: Sequence[str | Path], detections: Sequence[str | Path 
             edges.append(np.concatenate([encode_edges(target, frames[:len(target)]),
                                          np.full((len(box) - len(target), 4), np.nan,
                                                  np.float32)]))
-    if not crops or not np.isfinite(np.concatenate(edges)[:, 0]).any():
+    targets = np.concatenate(edges) if edges else np.zeros((0, 4), np.float32)
+    if not np.isfinite(targets[:, 0]).any():
         raise InputError(f"no crater label of 12 x 6 px or more in {[str(d) for d in datasets]}")
-    return BoxCrops(np.concatenate(crops), np.concatenate(edges),
+    return BoxCrops(np.concatenate(crops), targets,
                     np.concatenate(quality) if with_quality else None)
 
 
