@@ -3,8 +3,9 @@
 Render a small synthetic stereo dataset (train / validation / held-out test, disjoint seeds),
 train the smallest detector preset for a few minutes, pick the operating threshold on the
 validation split, export ONNX, run the exported model through onnxruntime on the held-out test
-split, and write one output folder: metrics JSON, a markdown report, the Pd plots and detection
-overlays.
+split (its crater boxes refined and rescored by the shipped box refiner, as ``lunarnav eval``
+does; the network's boxes are read too), and write one output folder: metrics JSON, a markdown
+report, the Pd plots and detection overlays.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ class DemoConfig:
     max_fa_per_image: float = 0.2  # false-alarm budget for the operating threshold
     n_overlays: int = 8  # overlay images written
     synth_config: str = str(DEMO_SYNTH_CONFIG)  # scene distribution of all three splits
+    box_refiner: bool = True  # crater boxes through the shipped box refiner, as `lunarnav eval`
 
     def validate(self) -> None:
         """Reject impossible settings (before anything is rendered) with a message naming the
@@ -121,10 +123,12 @@ def run_demo(cfg: DemoConfig, out_dir: Path, progress: bool = True) -> dict[str,
 
 
 def _run_in(cfg: DemoConfig, work: Path, progress: bool) -> dict[str, Any]:
+    from lunarnav_ml.eval.coco_metrics import coco_ap
     from lunarnav_ml.eval.pd import pick_operating_threshold
     from lunarnav_ml.eval.predict import predict_coco
     from lunarnav_ml.eval.report import detection_metrics, write_report
     from lunarnav_ml.export.onnx_export import export_onnx
+    from lunarnav_ml.geometry.boxrefine import BoxRefinedDetector, BoxRefiner, refined_by
     from lunarnav_ml.runtime import OnnxDetector
     from lunarnav_ml.training.api import fit_detector, load_detector
 
@@ -138,26 +142,40 @@ def _run_in(cfg: DemoConfig, work: Path, progress: bool) -> dict[str, Any]:
     clock.lap("train")
     gt = {split: json.loads(Path(p).read_text()) for split, p in ann.items()}
     detector = load_detector(ckpt)
-    val_results = predict_coco(detector, gt["val"], ann["val"].parent, progress=progress,
+    refiner = BoxRefiner(threads=2) if cfg.box_refiner else None
+
+    def refined(predictor: Any) -> Any:  # the default detection path of `lunarnav eval`
+        return predictor if refiner is None else BoxRefinedDetector(predictor, refiner)
+
+    val_results = predict_coco(refined(detector), gt["val"], ann["val"].parent, progress=progress,
                                desc="val (torch)")
     threshold = pick_operating_threshold(gt["val"], val_results, cfg.max_fa_per_image)
     clock.lap("threshold")
     onnx_path = export_onnx(detector, work / "model.onnx")
     runtime = OnnxDetector(onnx_path, threads=2)
-    test_results = predict_coco(runtime, gt["test"], ann["test"].parent, progress=progress,
-                                desc="test (onnxruntime)")
+    test_results = predict_coco(refined(runtime), gt["test"], ann["test"].parent,
+                                progress=progress, desc="test (onnxruntime)")
+    network_results = None if refiner is None else predict_coco(
+        runtime, gt["test"], ann["test"].parent, progress=progress,
+        desc="test, network's boxes")
     atomic.write_json(work / "test_detections.json", test_results, indent=None)
     clock.lap("export+inference")
     metrics = detection_metrics(gt["test"], test_results, threshold)
     metrics["val_metrics"] = detection_metrics(gt["val"], val_results, threshold)["coco"]
+    if network_results is not None:  # the same model without the refiner, for comparison
+        metrics["network_boxes_coco"] = coco_ap(gt["test"], network_results)
     write_overlays(gt["test"], test_results, threshold, ann["test"].parent, work / "overlays",
                    cfg.n_overlays)
     clock.lap("report")
     metrics["run"] = {"config": asdict(cfg), "stage_seconds": clock.stages,
                       "wall_seconds": clock.total, "peak_rss_gib": peak_rss_gib(),
                       "checkpoint": str(Path(ckpt).resolve().relative_to(work.resolve())),
-                      "onnx": "model.onnx"}
-    write_report(metrics, work, "lunarnav demo: synthetic held-out test split (onnxruntime)")
+                      "onnx": "model.onnx",
+                      "box_refiner": None if refiner is None else refiner.path.name}
+    title = "lunarnav demo: synthetic held-out test split (onnxruntime)"
+    if refiner is not None:
+        title += "; " + refined_by(refiner.path, refiner.has_quality)
+    write_report(metrics, work, title)
     _print_summary(metrics)
     return metrics
 
@@ -185,7 +203,10 @@ def write_overlays(gt: dict[str, Any], results: list[dict[str, Any]], threshold:
 
 def _print_summary(m: dict[str, Any]) -> None:
     crater = m["coco"]["per_class"]["crater"]
-    print(f"[demo] crater AP50 {crater['AP50']:.3f}  AP {crater['AP']:.3f}  "
+    network = m.get("network_boxes_coco")
+    beside = ("" if network is None else
+              f" (network's boxes {network['per_class']['crater']['AP50']:.3f})")
+    print(f"[demo] crater AP50 {crater['AP50']:.3f}{beside}  AP {crater['AP']:.3f}  "
           f"Pd(D>=5 m, <=20 m) {m.get('crater_pd_D5_within20m')}  "
           f"FA/img {m['false_alarms_per_image']:.3f}  threshold {m['threshold']:.3f}  "
           f"wall {m['run']['wall_seconds']:.0f} s  peak RSS {m['run']['peak_rss_gib']:.2f} GiB",
@@ -208,6 +229,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--batch-size", type=int, default=d.batch_size)
     p.add_argument("--synth-config", default=d.synth_config,
                    help="scene distribution (synth YAML) of the rendered splits")
+    p.add_argument("--no-box-refiner", action="store_true",
+                   help="report the network's boxes only (default: crater boxes refined and "
+                        "rescored by the shipped box refiner, as `lunarnav eval` does)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
 
@@ -216,6 +240,6 @@ def _run(args: argparse.Namespace) -> int:
     cfg = DemoConfig(seed=args.seed, n_train=args.n_train, n_val=args.n_val, n_test=args.n_test,
                      image_size=args.image_size, preset=args.preset,
                      train_minutes=args.train_minutes, batch_size=args.batch_size,
-                     synth_config=args.synth_config)
+                     synth_config=args.synth_config, box_refiner=not args.no_box_refiner)
     run_demo(cfg, args.out, progress=not args.no_progress)
     return 0
