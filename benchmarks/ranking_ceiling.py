@@ -37,7 +37,7 @@ from pycocotools.cocoeval import COCOeval
 from lunarnav_ml.data.coco import read_coco
 from lunarnav_ml.errors import LunarNavError
 from lunarnav_ml.eval.coco_metrics import coco_from_dict
-from lunarnav_ml.eval.pd import CRATER_ID
+from lunarnav_ml.eval.pd import CRATER_ID, is_ignored
 from lunarnav_ml.eval.predict import check_coco_results
 from lunarnav_ml.utils.atomic import check_image_destination, write_figure
 from lunarnav_ml.utils.jsonfile import read_json_file
@@ -103,7 +103,7 @@ def unmatched_kinds(gt: dict[str, Any], dets: list[dict[str, Any]], status: np.n
     ignored: dict[int, list[list[float]]] = {}
     for a in gt["annotations"]:
         if a["category_id"] == CRATER_ID:
-            into = ignored if a.get("ignore") or a.get("iscrowd") else countable
+            into = ignored if is_ignored(a) else countable
             into.setdefault(a["image_id"], []).append([float(v) for v in a["bbox"]])
     kind = np.full(len(dets), -1, np.int64)
     for i in np.flatnonzero(status == 0):

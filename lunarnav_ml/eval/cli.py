@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
 from collections.abc import Callable
@@ -164,13 +165,10 @@ def run_detection(args: argparse.Namespace) -> int:
     if args.threshold is None and args.val_gt is None:
         raise InputError("eval: the operating threshold comes from a validation split: give "
                          "--val-gt (with --model or --val-results), or --threshold")
-    loaded: list[Any] = []  # the predictor, once a split runs the model
-
-    def model() -> Any:
-        if not loaded:
-            loaded.append(with_box_refiner(load_predictor(args.model, args.threads, args.img_size,
-                                                          tta_config(args)), args))
-        return loaded[0]
+    @functools.cache
+    def model() -> Any:  # the predictor, loaded once when a split first runs the model
+        return with_box_refiner(load_predictor(args.model, args.threads, args.img_size,
+                                               tta_config(args)), args)
 
     threshold, val = args.threshold, None
     if threshold is None:
@@ -184,7 +182,7 @@ def run_detection(args: argparse.Namespace) -> int:
         atomic.write_json(work / "detections.json", results, indent=None)
         tta = tta_config(args) if args.test_results is None else None
         notes = [tta.describe()] if tta else []
-        refiner = getattr(loaded[0], "refiner", None) if args.test_results is None else None
+        refiner = getattr(model(), "refiner", None) if args.test_results is None else None
         if refiner is not None:  # the test split's boxes went through it
             from lunarnav_ml.geometry.boxrefine import refined_by
 
