@@ -22,9 +22,6 @@ ceiling 0.822 (BENCHMARKS.md, "Where the rescored detector's crater AP50 is lost
 from __future__ import annotations
 
 import argparse
-import contextlib
-import copy
-import io
 import sys
 from pathlib import Path
 from typing import Any
@@ -32,11 +29,10 @@ from typing import Any
 import numpy as np
 from pycocotools import mask as mask_utils
 from pycocotools.coco import COCO
-from pycocotools.cocoeval import COCOeval
 
 from lunarnav_ml.data.coco import read_coco
 from lunarnav_ml.errors import LunarNavError
-from lunarnav_ml.eval.coco_metrics import coco_from_dict
+from lunarnav_ml.eval.coco_metrics import coco_from_dict, crater_eval, matched
 from lunarnav_ml.eval.pd import CRATER_ID, is_ignored
 from lunarnav_ml.eval.predict import check_coco_results
 from lunarnav_ml.utils.atomic import check_image_destination, write_figure
@@ -46,48 +42,16 @@ KINDS = ("second box", "loose", "near ignored", "off every crater")
 COCO_MAX_DET = 100
 
 
-def _crater_eval(coco_gt: COCO, dets: list[dict[str, Any]], max_det: int) -> COCOeval:
-    """pycocotools' crater evaluation at IoU 0.5, the top ``max_det`` boxes of each image."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        ev = COCOeval(coco_gt, coco_gt.loadRes(copy.deepcopy(dets)), iouType="bbox")
-        ev.params.catIds = [CRATER_ID]
-        ev.params.iouThrs = np.array([0.5])
-        ev.params.maxDets = [1, 10, max_det]
-        ev.evaluate()
-        ev.accumulate()
-    return ev
-
-
 def ap50_recall(coco_gt: COCO, dets: list[dict[str, Any]], max_det: int = COCO_MAX_DET
                 ) -> tuple[float, float]:
     """Crater AP50 and recall (all areas, the top ``max_det`` boxes per image)."""
     if not any(d["category_id"] == CRATER_ID for d in dets):
         return 0.0, 0.0
-    ev = _crater_eval(coco_gt, dets, max_det)
+    ev = crater_eval(coco_gt, dets, max_det)
     precision = ev.eval["precision"][0, :, 0, 0, -1]
     valid = precision[precision > -1]
     return (float(valid.mean()) if valid.size else 0.0,
             max(float(ev.eval["recall"][0, 0, 0, -1]), 0.0))
-
-
-def matched(coco_gt: COCO, dets: list[dict[str, Any]]) -> np.ndarray:
-    """Per box of ``dets``: 1 if it matches a countable crater when every box of its image is
-    read, 0 if it is an unmatched crater box, -1 otherwise (ignored, or not a crater box)."""
-    status = np.full(len(dets), -1, np.int64)
-    if not any(d["category_id"] == CRATER_ID for d in dets):
-        return status
-    per_image: dict[int, int] = {}
-    for d in dets:
-        per_image[d["image_id"]] = per_image.get(d["image_id"], 0) + 1
-    ev = _crater_eval(coco_gt, dets, max(per_image.values()))
-    for e in ev.evalImgs:  # loadRes numbers the boxes 1..N in the order given
-        if e is None or e["aRng"] != ev.params.areaRng[0]:
-            continue
-        for box_id, match, ignored in zip(e["dtIds"], e["dtMatches"][0], e["dtIgnore"][0],
-                                          strict=True):
-            if not ignored:
-                status[box_id - 1] = int(match > 0)
-    return status
 
 
 def _best_iou(box: list[float], labels: list[list[float]]) -> float:

@@ -26,6 +26,7 @@ from lunarnav_ml.eval.predict import read_coco_results
 from lunarnav_ml.eval.tta import TTAConfig, TTAPredictor, add_tta_arguments, tta_config
 
 SHIPPED = "shipped"  # --refiner without a file
+AUTO = "auto"  # --box-rescorer by default: the shipped file for the pair it was fitted on
 
 
 def add_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
@@ -48,6 +49,36 @@ def add_box_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "",
                         f"{prefix}{off}")
 
 
+def add_box_rescorer_arguments(p: argparse.ArgumentParser) -> None:
+    """``--box-rescorer [ONNX]`` and ``--no-box-rescorer`` (default: the shipped rescorer for
+    the detector and box refiner it was fitted with, none for others)."""
+    p.add_argument("--box-rescorer", nargs="?", const=SHIPPED, default=AUTO, metavar="ONNX",
+                   help="score each refined crater box by this rescorer from `lunarnav "
+                        "train-box-rescorer` (no file: the shipped one, whatever the model; "
+                        "default: the shipped one when the model and box refiner are those it "
+                        "was fitted with, the shipped small.pt and box refiner; docs/geometry.md)")
+    p.add_argument("--no-box-rescorer", dest="box_rescorer", action="store_const", const=None,
+                   help="keep sqrt(score x quality) as the crater score")
+
+
+def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refiner: Any
+                      ) -> Any:
+    """The :class:`~lunarnav_ml.geometry.boxrescore.BoxRescorer` of ``--box-rescorer`` for the
+    model file ``model`` and the box refiner ``refiner`` (None: no rescorer: switched off, no
+    refiner with a quality output, or by default a pair the shipped file was not fitted on)."""
+    from lunarnav_ml.geometry.boxrescore import DEFAULT_BOX_RESCORER, BoxRescorer
+
+    choice = getattr(args, "box_rescorer", None)
+    if choice is None or refiner is None or not getattr(refiner, "has_quality", False):
+        return None
+    if choice == AUTO:
+        if model is None or not DEFAULT_BOX_RESCORER.is_file():
+            return None
+        rescorer = BoxRescorer(threads=args.threads)
+        return rescorer if rescorer.fitted_for(model, refiner.path) else None
+    return _open_tool(BoxRescorer, choice, args.threads)
+
+
 def _add_tool_arguments(p: argparse.ArgumentParser, name: str, on_help: str,
                         off_help: str) -> None:
     """``--NAME [ONNX]`` (default and without a file: ``SHIPPED``) and ``--no-NAME`` (None), the
@@ -66,14 +97,18 @@ def load_box_refiner(args: argparse.Namespace) -> Any:
     return _open_tool(BoxRefiner, args.box_refiner, args.threads)
 
 
-def with_box_refiner(predictor: Any, args: argparse.Namespace) -> Any:
-    """``predictor`` with its crater boxes refined by ``--box-refiner`` (a
+def with_box_refiner(predictor: Any, args: argparse.Namespace,
+                     model: str | Path | None = None) -> Any:
+    """``predictor`` (read from the file ``model``) with its crater boxes refined by
+    ``--box-refiner`` and scored by ``--box-rescorer`` where given (a
     :class:`~lunarnav_ml.geometry.boxrefine.BoxRefinedDetector`), or as it is with
     ``--no-box-refiner``."""
     from lunarnav_ml.geometry.boxrefine import BoxRefinedDetector
 
     refiner = load_box_refiner(args)
-    return predictor if refiner is None else BoxRefinedDetector(predictor, refiner)
+    if refiner is None:
+        return predictor
+    return BoxRefinedDetector(predictor, refiner, load_box_rescorer(args, model, refiner))
 
 
 def _open_tool(cls: Any, choice: str | None, threads: int) -> Any:
@@ -168,7 +203,7 @@ def run_detection(args: argparse.Namespace) -> int:
     @functools.cache
     def model() -> Any:  # the predictor, loaded once when a split first runs the model
         return with_box_refiner(load_predictor(args.model, args.threads, args.img_size,
-                                               tta_config(args)), args)
+                                               tta_config(args)), args, args.model)
 
     threshold, val = args.threshold, None
     if threshold is None:
@@ -250,9 +285,9 @@ def run_transfer(args: argparse.Namespace) -> int:
     if args.test_results is not None:
         results = read_coco_results(args.test_results)
     else:  # load_predictor runs .onnx files through onnxruntime, checkpoints through torch
-        predictor = with_box_refiner(load_predictor(args.onnx or args.checkpoint or args.model,
-                                                    args.threads, args.img_size,
-                                                    tta_config(args)), args)
+        weights = args.onnx or args.checkpoint or args.model
+        predictor = with_box_refiner(load_predictor(weights, args.threads, args.img_size,
+                                                    tta_config(args)), args, weights)
         results = predict_coco(predictor, gt, gt_path.parent, desc="transfer",
                                progress=not args.no_progress)
         if hasattr(predictor, "describe"):
@@ -336,6 +371,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               "(detection and transfer when a model runs; geometry with "
                               "--test-results; boxes marked refined are not refined again)",
                               "score the detector's boxes as they are")
+    add_box_rescorer_arguments(p)
     add_lifter_arguments(p, "(geometry) ")
     p.add_argument("--prior-sigma", type=float, default=1.0,
                    help="(baselines-lidar) map-prior position error per axis, m: each map "

@@ -18,6 +18,8 @@ from pycocotools.cocoeval import COCOeval
 
 from lunarnav_ml.errors import InputError
 
+CRATER_ID = 1  # the category crater_eval and matched read (as eval.pd's)
+
 
 def coco_from_dict(dataset: dict[str, Any]) -> COCO:
     """Build a pycocotools ``COCO`` index from a COCO dict, honouring ``ignore`` flags.
@@ -100,3 +102,35 @@ def _mean_valid(precision: np.ndarray) -> float | None:
 def _count_gt(coco_gt: COCO, cat_id: int) -> int:
     anns = coco_gt.loadAnns(coco_gt.getAnnIds(catIds=[cat_id]))
     return sum(1 for a in anns if not a["iscrowd"])
+
+
+def crater_eval(coco_gt: COCO, dets: list[dict[str, Any]], max_det: int) -> COCOeval:
+    """pycocotools' crater evaluation at IoU 0.5, the top ``max_det`` boxes of each image."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        ev = COCOeval(coco_gt, coco_gt.loadRes(copy.deepcopy(dets)), iouType="bbox")
+        ev.params.catIds = [CRATER_ID]
+        ev.params.iouThrs = np.array([0.5])
+        ev.params.maxDets = [1, 10, max_det]
+        ev.evaluate()
+        ev.accumulate()
+    return ev
+
+
+def matched(coco_gt: COCO, dets: list[dict[str, Any]]) -> np.ndarray:
+    """Per box of ``dets``: 1 if it matches a countable crater when every box of its image is
+    read, 0 if it is an unmatched crater box, -1 otherwise (ignored, or not a crater box)."""
+    status = np.full(len(dets), -1, np.int64)
+    if not any(d["category_id"] == CRATER_ID for d in dets):
+        return status
+    per_image: dict[int, int] = {}
+    for d in dets:
+        per_image[d["image_id"]] = per_image.get(d["image_id"], 0) + 1
+    ev = crater_eval(coco_gt, dets, max(per_image.values()))
+    for e in ev.evalImgs:  # loadRes numbers the boxes 1..N in the order given
+        if e is None or e["aRng"] != ev.params.areaRng[0]:
+            continue
+        for box_id, match, ignored in zip(e["dtIds"], e["dtMatches"][0], e["dtIgnore"][0],
+                                          strict=True):
+            if not ignored:
+                status[box_id - 1] = int(match > 0)
+    return status

@@ -218,19 +218,27 @@ class BoxRefinedDetector:
     "The box refiner on the detector's output", "An IoU-quality score from the box refiner").
     """
 
-    def __init__(self, predictor: Any, refiner: BoxRefiner) -> None:
-        self.predictor, self.refiner = predictor, refiner
+    def __init__(self, predictor: Any, refiner: BoxRefiner, rescorer: Any = None) -> None:
+        if rescorer is not None and not getattr(refiner, "has_quality", False):
+            raise InputError(f"{refiner.path}: a box rescorer reads the quality output, and this "
+                             f"box refiner has none")
+        self.predictor, self.refiner, self.rescorer = predictor, refiner, rescorer
 
     def __getattr__(self, name: str) -> Any:  # img_size, class_names, ...
-        if name in ("predictor", "refiner"):  # not set yet (copy, unpickling): no recursion
+        if name in ("predictor", "refiner", "rescorer"):  # not set yet (copy, unpickling)
             raise AttributeError(name)
         return getattr(self.predictor, name)
 
     def describe(self) -> str:
         """One line for report titles."""
         inner = getattr(self.predictor, "describe", None)
-        return (inner() + "; " if callable(inner) else "") + refined_by(
+        line = (inner() + "; " if callable(inner) else "") + refined_by(
             self.refiner.path, bool(getattr(self.refiner, "has_quality", False)))
+        if self.rescorer is not None:
+            from lunarnav_ml.geometry.boxrescore import rescored_by
+
+            line += "; " + rescored_by(self.rescorer.path)
+        return line
 
     def predict(self, images: list[np.ndarray], conf_thres: float = 0.001,
                 iou_thres: float = 0.6, max_det: int = 300) -> list[dict[str, np.ndarray]]:
@@ -240,28 +248,42 @@ class BoxRefinedDetector:
 
         With a quality output ``conf_thres`` holds for the final scores: the wrapped detector
         runs at ``conf_thres`` squared (sqrt(score x quality) >= t needs score >= t^2, quality
-        being at most 1), and what ends below ``conf_thres`` is dropped."""
+        being at most 1), and what ends below ``conf_thres`` is dropped. With a rescorer it runs
+        at most at :data:`~lunarnav_ml.geometry.boxrescore.RAW_FLOOR` (the rescorer counts the
+        weak boxes around each one, as it was fitted)."""
         rescored = bool(getattr(self.refiner, "has_quality", False))
-        preds = self.predictor.predict(images, conf_thres ** 2 if rescored else conf_thres,
-                                       iou_thres, max_det)
+        raw_conf = conf_thres ** 2 if rescored else conf_thres
+        if self.rescorer is not None:  # its score is no longer bounded by the detector's, and
+            from lunarnav_ml.geometry.boxrescore import RAW_FLOOR  # it counts weak neighbours
+
+            raw_conf = min(raw_conf, RAW_FLOOR)
+        preds = self.predictor.predict(images, raw_conf, iou_thres, max_det)
         out = [self.refine(image, pred, iou_thres) for image, pred in zip(images, preds)]
         if rescored:
             out = [{k: v[pred["scores"] >= conf_thres] for k, v in pred.items()} for pred in out]
         return out
 
-    def refine(self, image: np.ndarray, pred: dict[str, np.ndarray], iou_thres: float
-               ) -> dict[str, np.ndarray]:
+    def refine(self, image: np.ndarray, pred: dict[str, np.ndarray], iou_thres: float,
+               features: bool = False) -> dict[str, np.ndarray]:
         """One image's detections with their crater boxes refined (and rescored) and NMS at
         ``iou_thres`` run again per class; by score again. An empty crater box (no width or
-        height, as a clip to the frame's edge can leave) stays as it was."""
+        height, as a clip to the frame's edge can leave) stays as it was.
+
+        ``features`` (a refiner with a quality output): also return ``"rescore_features"``,
+        (N, len(FEATURES)) float32, each crater box's
+        :func:`~lunarnav_ml.geometry.boxrescore.rescore_features` (NaN rows for the other
+        boxes), what ``lunarnav train-box-rescorer`` fits on."""
+        from lunarnav_ml.geometry.boxrescore import FEATURES
         boxes = np.asarray(pred["boxes"], np.float64).reshape(-1, 4).copy()
         scores = np.asarray(pred["scores"], np.float32).reshape(-1)
         labels = np.asarray(pred["labels"]).reshape(-1)
         crater = (labels == CRATER_LABEL) & np.isfinite(boxes).all(axis=1) \
             & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])  # an empty box stays
+        feats = np.full((len(boxes), len(FEATURES)), np.nan, np.float32)
         if crater.any():
             gray = as_image("image", image)
             xywh = np.column_stack([boxes[crater, :2], boxes[crater, 2:] - boxes[crater, :2]])
+            raw_xywh, raw_scores = xywh, scores[crater].astype(np.float64)
             xywh, quality = self.refiner.refine_scored(gray, xywh)
             if quality is not None:
                 scores = scores.copy()
@@ -273,7 +295,34 @@ class BoxRefinedDetector:
                 np.column_stack([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]]).tolist(),
                 scores.tolist(), labels.astype(int).tolist(), 0.0, float(iou_thres)),
                 dtype=np.int64).reshape(-1)
+            if quality is not None and (features or self.rescorer is not None):
+                kept = keep[crater[keep]]
+                feats[kept] = self._features(raw_xywh, raw_scores, boxes, quality, crater, kept,
+                                             gray.shape)
+                if self.rescorer is not None:
+                    scores = scores.copy()
+                    scores[kept] = self.rescorer(feats[kept])
             keep = keep[np.lexsort((keep, -scores[keep]))]  # by score, ties in input order
             boxes, scores, labels, crater = boxes[keep], scores[keep], labels[keep], crater[keep]
-        return {"boxes": boxes.astype(np.float32), "scores": scores, "labels": labels,
-                "box_refined": crater}
+            feats = feats[keep]
+        out = {"boxes": boxes.astype(np.float32), "scores": scores, "labels": labels,
+               "box_refined": crater}
+        if features:
+            out["rescore_features"] = feats
+        return out
+
+    @staticmethod
+    def _features(raw_xywh: np.ndarray, raw_scores: np.ndarray, boxes: np.ndarray,
+                  quality: np.ndarray, crater: np.ndarray, kept: np.ndarray,
+                  shape: tuple[int, ...]) -> np.ndarray:
+        """The rescorer's features of the frame's boxes ``kept`` (crater boxes left by NMS);
+        ``raw_xywh``, ``raw_scores`` and ``quality`` are per crater box, ``boxes`` (xyxy) and
+        ``crater`` per box of the frame."""
+        from lunarnav_ml.geometry.boxrescore import rescore_features
+
+        idx = np.flatnonzero(crater)  # crater box k of the frame is box idx[k]
+        position = np.full(len(crater), -1, np.int64)
+        position[idx] = np.arange(len(idx))
+        xywh = np.column_stack([boxes[idx, :2], boxes[idx, 2:] - boxes[idx, :2]])
+        return rescore_features(raw_xywh, raw_scores, xywh, quality.astype(np.float64),
+                                position[kept], shape)

@@ -1,6 +1,6 @@
 """``lunarnav train`` (the LightningCLI of train.py), ``lunarnav detect``,
-``lunarnav average``, ``lunarnav distill-stem``, ``lunarnav train-refiner`` and
-``lunarnav train-box-refiner``."""
+``lunarnav average``, ``lunarnav distill-stem``, ``lunarnav train-refiner``,
+``lunarnav train-box-refiner`` and ``lunarnav train-box-rescorer``."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import argparse
 from pathlib import Path
 
 from lunarnav_ml.errors import ConfigError
-from lunarnav_ml.eval.cli import add_box_refiner_arguments
+from lunarnav_ml.eval.cli import add_box_refiner_arguments, add_box_rescorer_arguments
 from lunarnav_ml.eval.tta import add_tta_arguments, tta_config
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
@@ -49,6 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_tta_arguments(p)
     add_box_refiner_arguments(p, when="(after --tta)",
                               off="write the detector's boxes as they are")
+    add_box_rescorer_arguments(p)
     p.set_defaults(func=run_detect)
 
     p = subparsers.add_parser(
@@ -164,6 +165,35 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train_box_refiner)
 
+    p = subparsers.add_parser(
+        "train-box-rescorer", help="fit the second-stage score of the refined crater boxes",
+        description="Runs a detector's crater boxes through the box refiner as detection does "
+                    "and fits a gradient-boosted tree ensemble on each box's score, quality, "
+                    "size, place and neighbours to whether it lies on a countable crater; "
+                    "exports it as ONNX, for the --box-rescorer of 'lunarnav detect' and "
+                    "'lunarnav eval' (docs/geometry.md).")
+    p.add_argument("datasets", type=Path, nargs="+",
+                   help="COCO sets with crater labels: folders with annotations.json (or one "
+                        "annotations*.json shard), or the files. Not a set you read a figure "
+                        "or a threshold on")
+    p.add_argument("--detections", type=Path, nargs="+", required=True,
+                   help="the detector's COCO results on each set, in the same order (the "
+                        "detections.json of 'lunarnav eval --task detection --no-box-refiner "
+                        "--out D')")
+    p.add_argument("--detector", type=Path, required=True,
+                   help="the model file that wrote them (recorded: the rescorer is applied to "
+                        "its boxes by default, not to other models')")
+    p.add_argument("--box-refiner", type=Path, default=None,
+                   help="box refiner with a quality output (default: the shipped one)")
+    p.add_argument("--out", type=Path, required=True, help="ONNX file to write")
+    p.add_argument("--repeats", type=int, nargs="+", default=None,
+                   help="each set's weight in the fit, in the same order (default 1 each), "
+                        "e.g. 8 for a few hundred real frames beside thousands of renders")
+    p.add_argument("--trees", type=int, default=None, help="boosting rounds (default 300)")
+    p.add_argument("--seed", type=int, default=None, help="row subsampling seed (default 0)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_train_box_rescorer)
+
 
 def run_train_box_refiner(args: argparse.Namespace) -> int:
     """Crops, training and ONNX export of the box refiner (``--out`` written atomically)."""
@@ -183,6 +213,21 @@ def run_train_box_refiner(args: argparse.Namespace) -> int:
           f"the crop (the input boxes' side edges {report.input_l1:.4f}; {report.n_val} crops)"
           + ("" if report.quality_corr is None
              else f"; quality vs IoU r = {report.quality_corr:.3f}") + f" -> {args.out}")
+    return 0
+
+
+def run_train_box_rescorer(args: argparse.Namespace) -> int:
+    """Features, fit and ONNX export of the box rescorer (``--out`` written atomically)."""
+    from lunarnav_ml.training.box_rescorer import BoxRescorerConfig, run
+    from lunarnav_ml.utils.atomic import check_destination
+
+    given = {k: getattr(args, k) for k in ("trees", "seed")}
+    config = BoxRescorerConfig(**{k: v for k, v in given.items() if v is not None})
+    check_destination(args.out)
+    report = run(args.datasets, args.detections, args.out, args.detector, args.box_refiner,
+                 config, progress=not args.quiet, repeats=args.repeats)
+    print(f"lunarnav train-box-rescorer: {report.n_rows} crater boxes ({report.n_positive} on "
+          f"a countable crater) in {report.seconds:.0f} s -> {args.out}")
     return 0
 
 
@@ -241,7 +286,7 @@ def run_detect(args: argparse.Namespace) -> int:
         raise ConfigError(f"no --weights given and no shipped weights at {weights}")
     files = list_images(args.source)
     detector = with_box_refiner(load_predictor(weights, args.threads, args.img_size,
-                                               tta_config(args)), args)
+                                               tta_config(args)), args, weights)
     out = detect_files(detector, files, args.out, conf_thres=args.conf, iou_thres=args.iou,
                        overlay_thres=args.overlay_conf, batch=args.batch,
                        progress=not args.quiet, gallery=args.gallery)
