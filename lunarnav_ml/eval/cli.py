@@ -26,7 +26,6 @@ from lunarnav_ml.eval.predict import read_coco_results
 from lunarnav_ml.eval.tta import TTAConfig, TTAPredictor, add_tta_arguments, tta_config
 
 SHIPPED = "shipped"  # --refiner without a file
-AUTO = "auto"  # --box-rescorer by default: the shipped file for the pair it was fitted on
 
 
 def add_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
@@ -50,33 +49,43 @@ def add_box_refiner_arguments(p: argparse.ArgumentParser, prefix: str = "",
 
 
 def add_box_rescorer_arguments(p: argparse.ArgumentParser) -> None:
-    """``--box-rescorer [ONNX]`` and ``--no-box-rescorer`` (default: the shipped rescorer for
-    the detector and box refiner it was fitted with, none for others)."""
-    p.add_argument("--box-rescorer", nargs="?", const=SHIPPED, default=AUTO, metavar="ONNX",
+    """``--box-rescorer [ONNX]`` (off by default; no file: the shipped rescorer, for the model
+    and box refiner it was fitted with) and ``--no-box-rescorer``."""
+    p.add_argument("--box-rescorer", nargs="?", const=SHIPPED, default=None, metavar="ONNX",
                    help="score each refined crater box by this rescorer from `lunarnav "
-                        "train-box-rescorer` (no file: the shipped one, whatever the model; "
-                        "default: the shipped one when the model and box refiner are those it "
-                        "was fitted with, the shipped small.pt and box refiner; docs/geometry.md)")
+                        "train-box-rescorer` (no file: the shipped one, fitted on the shipped "
+                        "small.pt with the shipped box refiner and refused for other models; "
+                        "default off; docs/geometry.md)")
     p.add_argument("--no-box-rescorer", dest="box_rescorer", action="store_const", const=None,
-                   help="keep sqrt(score x quality) as the crater score")
+                   help="keep sqrt(score x quality) as the crater score (the default)")
 
 
 def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refiner: Any
                       ) -> Any:
     """The :class:`~lunarnav_ml.geometry.boxrescore.BoxRescorer` of ``--box-rescorer`` for the
-    model file ``model`` and the box refiner ``refiner`` (None: no rescorer: switched off, no
-    refiner with a quality output, or by default a pair the shipped file was not fitted on)."""
-    from lunarnav_ml.geometry.boxrescore import DEFAULT_BOX_RESCORER, BoxRescorer
+    model file ``model`` and the box refiner ``refiner`` (None when switched off).
+
+    Raises:
+        InputError: a rescorer without a box refiner with a quality output; the shipped file
+            asked for with a model or box refiner other than those it was fitted with.
+    """
+    from lunarnav_ml.geometry.boxrescore import BoxRescorer
 
     choice = getattr(args, "box_rescorer", None)
-    if choice is None or refiner is None or not getattr(refiner, "has_quality", False):
+    if choice is None:
         return None
-    if choice == AUTO:
-        if model is None or not DEFAULT_BOX_RESCORER.is_file():
-            return None
-        rescorer = BoxRescorer(threads=args.threads)
-        return rescorer if rescorer.fitted_for(model, refiner.path) else None
-    return _open_tool(BoxRescorer, choice, args.threads)
+    if refiner is None or not getattr(refiner, "has_quality", False):
+        raise InputError("--box-rescorer reads the box refiner's quality output: give a box "
+                         "refiner with one (the shipped one does)")
+    rescorer = _open_tool(BoxRescorer, choice, args.threads)
+    if choice == SHIPPED and (model is None or not rescorer.fitted_for(model, refiner.path)):
+        fitted = rescorer.fitted_with
+        raise InputError(f"{rescorer.path}: fitted on the scores of "
+                         f"{(fitted['detector'] or {}).get('file')} with "
+                         f"{(fitted['box_refiner'] or {}).get('file')}, not on {model} with "
+                         f"{refiner.path}; fit one for them with `lunarnav train-box-rescorer` "
+                         f"and name it")
+    return rescorer
 
 
 def _add_tool_arguments(p: argparse.ArgumentParser, name: str, on_help: str,

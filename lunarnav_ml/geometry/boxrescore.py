@@ -11,9 +11,12 @@ each box left after the refinement's NMS and returns the probability that it mat
 countable crater at IoU >= 0.5; that probability is the box's new score.
 
 It is fitted on one detector's scores with one box refiner, and the file records both
-(``lunarnav.detector`` and ``lunarnav.box_refiner``: name and SHA-256). ``lunarnav eval`` uses
-the shipped rescorer with the detector and refiner it was fitted with and leaves other
-detectors' scores alone unless a rescorer is named (:func:`fitted_for`).
+(``lunarnav.detector`` and ``lunarnav.box_refiner``: name and SHA-256). It is off by default:
+``--box-rescorer`` in ``lunarnav detect`` and ``lunarnav eval`` turns it on, the shipped file
+for the shipped ``small.pt`` and box refiner only (:meth:`BoxRescorer.fitted_for`), a named
+file for any model. The shipped file (session 74) raised crater AP50 and key-crater Pd on both
+synthetic validation sets and lost one crater of 83 at recall@5 on the real ``valid/`` frames,
+so it did not become the default (BENCHMARKS.md, "A second-stage score for the crater boxes").
 
 The ONNX file (a scikit-learn ensemble converted by skl2onnx, read by onnxruntime's tree
 operators) carries ``lunarnav.kind = box_rescorer`` and ``lunarnav.features``.

@@ -10,7 +10,7 @@ import torch
 
 from lunarnav_ml.cli import main
 from lunarnav_ml.errors import ConfigError, InputError
-from lunarnav_ml.eval.cli import AUTO, SHIPPED, load_box_rescorer
+from lunarnav_ml.eval.cli import SHIPPED, load_box_rescorer
 from lunarnav_ml.geometry.boxrefine import BoxRefinedDetector, BoxRefiner
 from lunarnav_ml.geometry.boxrescore import (
     DEFAULT_BOX_RESCORER,
@@ -84,7 +84,7 @@ def test_export_matches_sklearn_and_learns(toy_file):
     hi, lo = x[:1].copy(), x[:1].copy()
     hi[0, F["score"]], lo[0, F["score"]] = 0.95, 0.05
     hi[0, F["height"]], lo[0, F["height"]] = 0.9, 0.1
-    assert rescorer(hi)[0] > 0.8 > 0.2 > rescorer(lo)[0]
+    assert rescorer(hi)[0] > 0.8 and rescorer(lo)[0] < 0.2
     assert rescorer(np.zeros((0, len(FEATURES)))).shape == (0,)
     # the same seed, the same trees
     again = fit(*_toy_rows(), BoxRescorerConfig(trees=60, depth=2))
@@ -201,12 +201,19 @@ def test_cli_fit_and_the_default_choice(labelled_set, tmp_path, capsys):
     assert not rescorer.fitted_for(root / "model.pt", DEFAULT_BOX_RESCORER)
     args = argparse.Namespace(threads=1, box_rescorer=str(out))
     assert load_box_rescorer(args, tmp_path / "other.pt", refiner).path == out  # named: used
-    for choice in (None, AUTO):  # off; by default the shipped file, fitted on small.pt only
-        args.box_rescorer = choice
-        assert load_box_rescorer(args, root / "model.pt", refiner) is None
-    if DEFAULT_BOX_RESCORER.is_file():
-        args.box_rescorer = SHIPPED
-        assert load_box_rescorer(args, root / "model.pt", refiner).path == DEFAULT_BOX_RESCORER
+    with pytest.raises(InputError, match="quality"):
+        load_box_rescorer(args, root / "model.pt", None)
+    args.box_rescorer = None  # off, the default
+    assert load_box_rescorer(args, root / "model.pt", refiner) is None
+    args.box_rescorer = SHIPPED  # the shipped file: fitted on small.pt, refused for others
+    with pytest.raises(InputError, match="fitted on the scores of small.pt"):
+        load_box_rescorer(args, root / "model.pt", refiner)
+    shipped = BoxRescorer(DEFAULT_BOX_RESCORER)
+    from lunarnav_ml.geometry.boxrefine import DEFAULT_BOX_REFINER
+    from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
+
+    assert shipped.fitted_for(DEFAULT_WEIGHTS, DEFAULT_BOX_REFINER)
+    assert load_box_rescorer(args, DEFAULT_WEIGHTS, BoxRefiner()).path == DEFAULT_BOX_RESCORER
 
 
 def test_cli_errors_are_one_line(labelled_set, tmp_path, capsys):
