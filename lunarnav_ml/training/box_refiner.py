@@ -231,6 +231,16 @@ def jitter_boxes(boxes: np.ndarray, frac: float, rng: np.random.Generator) -> np
     return out
 
 
+def checked_repeats(repeats: Sequence[int] | None, n_sets: int) -> list[int]:
+    """Each set's weight in a training mix: ``repeats`` as a list (None: 1 each), checked to
+    be one positive integer per set."""
+    repeats = [1] * n_sets if repeats is None else list(repeats)
+    if len(repeats) != n_sets or any(
+            not isinstance(r, int) or isinstance(r, bool) or r < 1 for r in repeats):
+        raise ConfigError(f"repeats: one positive integer per set ({n_sets}), got {repeats!r}")
+    return repeats
+
+
 def build_crops(datasets: Sequence[str | Path], detections: Sequence[str | Path | None],
                 config: BoxRefinerConfig = BoxRefinerConfig(), progress: bool = True,
                 repeats: Sequence[int] | None = None) -> BoxCrops:
@@ -244,11 +254,7 @@ def build_crops(datasets: Sequence[str | Path], detections: Sequence[str | Path 
     if len(detections) != len(datasets):
         raise ConfigError(f"detections: one results file (or None) per set: {len(datasets)} "
                           f"set(s), {len(detections)} file(s)")
-    repeats = [1] * len(datasets) if repeats is None else list(repeats)
-    if len(repeats) != len(datasets) or any(
-            not isinstance(r, int) or isinstance(r, bool) or r < 1 for r in repeats):
-        raise ConfigError(f"repeats: one positive integer per set ({len(datasets)}), got "
-                          f"{repeats!r}")
+    repeats = checked_repeats(repeats, len(datasets))
     rng = np.random.default_rng(config.seed)
     with_quality = config.quality > 0
     crops, edges, quality = [], [], []

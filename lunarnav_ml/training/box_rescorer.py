@@ -40,6 +40,7 @@ from lunarnav_ml.geometry.boxrescore import (
     file_digest,
 )
 from lunarnav_ml.geometry.report import annotations_path, read_gray
+from lunarnav_ml.training.box_refiner import checked_repeats
 from lunarnav_ml.utils.jsonfile import read_json_file
 
 NMS_IOU = 0.6  # detection's (lunarnav eval, detect)
@@ -184,13 +185,9 @@ def run(datasets: Sequence[str | Path], detections: Sequence[str | Path], out: s
         repeats: Sequence[int] | None = None) -> BoxRescorerReport:
     """Features, fit and export: what ``lunarnav train-box-rescorer`` does. ``detector`` is the
     model file whose results ``detections`` are (recorded by name and SHA-256, with the box
-    refiner's, so that detection applies the rescorer to that pair only by default);
+    refiner's: ``--box-rescorer`` without a file name refuses other pairs);
     ``repeats`` weighs each set's rows (default 1 each)."""
-    repeats = [1] * len(datasets) if repeats is None else list(repeats)
-    if len(repeats) != len(datasets) or any(
-            not isinstance(r, int) or isinstance(r, bool) or r < 1 for r in repeats):
-        raise ConfigError(f"repeats: one positive integer per set ({len(datasets)}), got "
-                          f"{repeats!r}")
+    repeats = checked_repeats(repeats, len(datasets))
     if not Path(detector).is_file():
         raise InputError(f"{detector}: no such detector file")
     refiner = BoxRefiner(box_refiner, threads=1)

@@ -181,8 +181,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "detections.json of 'lunarnav eval --task detection --no-box-refiner "
                         "--out D')")
     p.add_argument("--detector", type=Path, required=True,
-                   help="the model file that wrote them (recorded: the rescorer is applied to "
-                        "its boxes by default, not to other models')")
+                   help="the model file that wrote them (recorded with the box refiner: the "
+                        "shipped rescorer refuses other models)")
     p.add_argument("--box-refiner", type=Path, default=None,
                    help="box refiner with a quality output (default: the shipped one)")
     p.add_argument("--out", type=Path, required=True, help="ONNX file to write")
