@@ -66,17 +66,19 @@ def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refine
     model file ``model`` and the box refiner ``refiner`` (None when switched off).
 
     Raises:
-        InputError: a rescorer without a box refiner with a quality output; the shipped file
-            asked for with a model or box refiner other than those it was fitted with.
+        InputError: a rescorer without a box refiner (``--no-box-refiner``); the shipped file
+            asked for with a model or box refiner other than those it was fitted with. (A
+            refiner without a quality output is refused by the
+            :class:`~lunarnav_ml.geometry.boxrefine.BoxRefinedDetector` it goes into.)
     """
     from lunarnav_ml.geometry.boxrescore import BoxRescorer
 
     choice = getattr(args, "box_rescorer", None)
     if choice is None:
         return None
-    if refiner is None or not getattr(refiner, "has_quality", False):
-        raise InputError("--box-rescorer reads the box refiner's quality output: give a box "
-                         "refiner with one (the shipped one does)")
+    if refiner is None:
+        raise InputError("--box-rescorer reads the box refiner's quality output: drop "
+                         "--no-box-refiner (the shipped box refiner has one)")
     rescorer = _open_tool(BoxRescorer, choice, args.threads)
     if choice == SHIPPED and (model is None or not rescorer.fitted_for(model, refiner.path)):
         fitted = rescorer.fitted_with
@@ -115,9 +117,8 @@ def with_box_refiner(predictor: Any, args: argparse.Namespace,
     from lunarnav_ml.geometry.boxrefine import BoxRefinedDetector
 
     refiner = load_box_refiner(args)
-    if refiner is None:
-        return predictor
-    return BoxRefinedDetector(predictor, refiner, load_box_rescorer(args, model, refiner))
+    rescorer = load_box_rescorer(args, model, refiner)  # refused without a refiner
+    return predictor if refiner is None else BoxRefinedDetector(predictor, refiner, rescorer)
 
 
 def _open_tool(cls: Any, choice: str | None, threads: int) -> Any:

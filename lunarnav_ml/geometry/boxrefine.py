@@ -273,13 +273,12 @@ class BoxRefinedDetector:
         (N, len(FEATURES)) float32, each crater box's
         :func:`~lunarnav_ml.geometry.boxrescore.rescore_features` (NaN rows for the other
         boxes), what ``lunarnav train-box-rescorer`` fits on."""
-        from lunarnav_ml.geometry.boxrescore import FEATURES
         boxes = np.asarray(pred["boxes"], np.float64).reshape(-1, 4).copy()
         scores = np.asarray(pred["scores"], np.float32).reshape(-1)
         labels = np.asarray(pred["labels"]).reshape(-1)
         crater = (labels == CRATER_LABEL) & np.isfinite(boxes).all(axis=1) \
             & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])  # an empty box stays
-        feats = np.full((len(boxes), len(FEATURES)), np.nan, np.float32)
+        feats = None  # the rescorer's features, where asked for or read
         if crater.any():
             gray = as_image("image", image)
             xywh = np.column_stack([boxes[crater, :2], boxes[crater, 2:] - boxes[crater, :2]])
@@ -296,33 +295,36 @@ class BoxRefinedDetector:
                 scores.tolist(), labels.astype(int).tolist(), 0.0, float(iou_thres)),
                 dtype=np.int64).reshape(-1)
             if quality is not None and (features or self.rescorer is not None):
-                kept = keep[crater[keep]]
-                feats[kept] = self._features(raw_xywh, raw_scores, boxes, quality, crater, kept,
-                                             gray.shape)
+                feats = self._features(raw_xywh, raw_scores, boxes, quality, crater, keep,
+                                       gray.shape)
                 if self.rescorer is not None:
+                    kept = keep[crater[keep]]
                     scores = scores.copy()
                     scores[kept] = self.rescorer(feats[kept])
             keep = keep[np.lexsort((keep, -scores[keep]))]  # by score, ties in input order
             boxes, scores, labels, crater = boxes[keep], scores[keep], labels[keep], crater[keep]
-            feats = feats[keep]
+            feats = None if feats is None else feats[keep]
         out = {"boxes": boxes.astype(np.float32), "scores": scores, "labels": labels,
                "box_refined": crater}
         if features:
-            out["rescore_features"] = feats
+            from lunarnav_ml.geometry.boxrescore import FEATURES
+
+            out["rescore_features"] = (np.full((len(boxes), len(FEATURES)), np.nan, np.float32)
+                                       if feats is None else feats)
         return out
 
     @staticmethod
     def _features(raw_xywh: np.ndarray, raw_scores: np.ndarray, boxes: np.ndarray,
-                  quality: np.ndarray, crater: np.ndarray, kept: np.ndarray,
+                  quality: np.ndarray, crater: np.ndarray, keep: np.ndarray,
                   shape: tuple[int, ...]) -> np.ndarray:
-        """The rescorer's features of the frame's boxes ``kept`` (crater boxes left by NMS);
-        ``raw_xywh``, ``raw_scores`` and ``quality`` are per crater box, ``boxes`` (xyxy) and
-        ``crater`` per box of the frame."""
-        from lunarnav_ml.geometry.boxrescore import rescore_features
+        """(N, len(FEATURES)): the rescorer's features of the frame's crater boxes that NMS
+        kept (``keep``), NaN rows for every other box; ``raw_xywh``, ``raw_scores`` and
+        ``quality`` are per crater box, ``boxes`` (xyxy) and ``crater`` per box of the frame."""
+        from lunarnav_ml.geometry.boxrescore import FEATURES, rescore_features
 
-        idx = np.flatnonzero(crater)  # crater box k of the frame is box idx[k]
-        position = np.full(len(crater), -1, np.int64)
-        position[idx] = np.arange(len(idx))
-        xywh = np.column_stack([boxes[idx, :2], boxes[idx, 2:] - boxes[idx, :2]])
-        return rescore_features(raw_xywh, raw_scores, xywh, quality.astype(np.float64),
-                                position[kept], shape)
+        kept = keep[crater[keep]]
+        xywh = np.column_stack([boxes[crater, :2], boxes[crater, 2:] - boxes[crater, :2]])
+        out = np.full((len(boxes), len(FEATURES)), np.nan, np.float32)
+        out[kept] = rescore_features(raw_xywh, raw_scores, xywh, quality.astype(np.float64),
+                                     (np.cumsum(crater) - 1)[kept], shape)
+        return out

@@ -30,7 +30,7 @@ from tqdm import tqdm
 from lunarnav_ml import __version__
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.eval.coco_metrics import coco_from_dict, matched
-from lunarnav_ml.eval.predict import read_coco_results
+from lunarnav_ml.eval.predict import read_coco_results, to_coco_results
 from lunarnav_ml.geometry.boxrefine import CRATER_LABEL, BoxRefinedDetector, BoxRefiner
 from lunarnav_ml.geometry.boxrescore import (
     FEATURES,
@@ -116,11 +116,9 @@ def collect(datasets: Sequence[str | Path], detections: Sequence[str | Path],
             out = wrapper.refine(read_gray(path.parent, im["file_name"]), _prediction(results),
                                  NMS_IOU, features=True)
             crater = out["labels"] == CRATER_LABEL
-            boxes = out["boxes"][crater].astype(np.float64)
             feats.append(out["rescore_features"][crater])
-            kept += [{"image_id": im["id"], "category_id": CRATER_LABEL,
-                      "bbox": [b[0], b[1], b[2] - b[0], b[3] - b[1]], "score": float(s)}
-                     for b, s in zip(boxes, out["scores"][crater], strict=True)]
+            kept += [r for r in to_coco_results(out, im["id"])
+                     if r["category_id"] == CRATER_LABEL]
         if not kept:
             raise InputError(f"{det_path}: no crater detection on the frames of {path}")
         status = matched(coco_from_dict(gt), kept)

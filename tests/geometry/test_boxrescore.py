@@ -236,3 +236,8 @@ def test_cli_errors_are_one_line(labelled_set, tmp_path, capsys):
     assert main([*args, "--detections", str(root / "detections.json")]) != 0
     assert "quality" in capsys.readouterr().err
     assert not (tmp_path / "r.onnx").exists()
+    # asked for without the box refiner it reads: refused, not ignored
+    assert main(["detect", str(root / "images/left/0.png"), "--no-box-refiner",
+                 "--box-rescorer", "--out", str(tmp_path / "d"), "--quiet"]) != 0
+    assert "--no-box-refiner" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
