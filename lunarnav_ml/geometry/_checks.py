@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 
 from lunarnav_ml.errors import InputError
+
+LUMA = np.array([0.299, 0.587, 0.114])  # RGB -> gray (ITU-R BT.601), as OpenCV converts
 
 
 def as_array(
@@ -54,19 +57,22 @@ def as_points(name: str, value: object, dim: int, *, allow_nan: bool = False) ->
 
 
 def as_image(name: str, value: object) -> np.ndarray:
-    """Check an HxW (gray) or HxWx3 image and return it as an HxW uint8 gray image.
+    """Check an HxW (gray) or HxWx3 RGB image and return it as an HxW uint8 gray image.
 
-    Float images are expected in [0, 1] and scaled to 0..255.
+    Colour is turned to gray as ``cv2.imread(path, cv2.IMREAD_GRAYSCALE)`` turns it: the luma
+    0.299 R + 0.587 G + 0.114 B (OpenCV's ``COLOR_RGB2GRAY``), so that what a learned model
+    (the box and disparity refiners) reads at run time is what it was trained on; a gray image
+    replicated to three channels comes back as it was. Float images are expected in [0, 1] and
+    scaled to 0..255.
 
     Raises:
         InputError: wrong rank/channels or non-finite values.
     """
     arr = np.asarray(value)
     if arr.ndim == 3 and arr.shape[2] == 3:
-        if arr.dtype == np.uint8:  # the rounded mean, in integers (12x faster than floats)
-            total = arr[..., 0].astype(np.uint16) + arr[..., 1] + arr[..., 2]
-            return ((total + 1) // 3).astype(np.uint8)
-        arr = np.asarray(arr, dtype=np.float64).mean(axis=2)
+        if arr.dtype == np.uint8:
+            return cv2.cvtColor(np.ascontiguousarray(arr), cv2.COLOR_RGB2GRAY)
+        arr = np.asarray(arr, dtype=np.float64) @ LUMA
     if arr.ndim != 2:
         raise InputError(f"{name}: expected shape (H, W) or (H, W, 3), got {tuple(np.shape(value))}")
     if arr.dtype == np.uint8:

@@ -2,6 +2,7 @@
 
 import json
 
+import cv2
 import numpy as np
 import onnx
 import pytest
@@ -9,6 +10,7 @@ import torch
 
 from lunarnav_ml.cli import main
 from lunarnav_ml.errors import ConfigError, InputError
+from lunarnav_ml.geometry._checks import as_image
 from lunarnav_ml.geometry.boxrefine import (
     CROP_H,
     CROP_W,
@@ -177,6 +179,27 @@ def test_refined_detector_moves_crater_boxes_and_suppresses_their_repeats(shippe
     out = only_rock.predict([rgb])[0]
     assert len(out["boxes"]) == 2 and not out["box_refined"].any()
     assert only_rock.predict([]) == []
+
+
+def test_colour_frames_reach_the_refiner_as_its_training_read_them(tmp_path):
+    """The refiners trained on cv2.imread(..., IMREAD_GRAYSCALE); an RGB frame (read_rgb) must
+    reach them as the same gray (the luma), not the channels' mean, and a gray frame replicated
+    to three channels as it was."""
+    rng = np.random.default_rng(3)
+    bgr = rng.integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    bgr[..., 0] //= 4  # unequal channels: the mean and the luma differ
+    path = tmp_path / "frame.png"
+    cv2.imwrite(str(path), bgr)
+    from lunarnav_ml.utils.images import read_rgb
+
+    gray = as_image("image", read_rgb(path)).astype(int)
+    trained_on = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(int)
+    assert np.abs(gray - trained_on).max() <= 1  # libpng's fixed-point rounding
+    assert np.abs(bgr.mean(axis=2) - trained_on).mean() > 10
+    plain = bgr[..., 1]
+    assert np.array_equal(as_image("image", np.repeat(plain[..., None], 3, axis=2)), plain)
+    floats = as_image("image", read_rgb(path) / 255.0)
+    assert np.abs(floats.astype(int) - trained_on).max() <= 1
 
 
 def test_refined_boxes_are_clipped_to_the_image():
