@@ -1,0 +1,165 @@
+"""Where the key-crater Pd is lost: the key craters (D >= 5 m, near rim <= 20 m) of a
+``lunarnav eval --task detection --out D`` read, found or missed at that read's operating
+threshold, split by label attribute.
+
+Printed: the key Pd over all key craters, over the fresh and whole ones (depth / diameter >=
+0.12 and at least 0.8 of the rim visible) and over the rest; then per bin of depth / diameter,
+visible rim fraction and near-rim range. With ``--montage``, a PNG of up to 24 key craters with
+d/D < 0.08 above up to 24 fresh ones (d/D >= 0.16, rim >= 0.8 visible), drawn at random with
+``--seed``: the labelled box in green where it was found, red where missed.
+
+Session 75 read it on `val300`: 72 % of the key craters are shallow or part-hidden, the fresh
+ones reach 0.78-0.79, those with d/D < 0.08 0.02-0.08 (BENCHMARKS.md, issue 4, "Colour frames
+reach the refiner as it was trained").
+
+    python benchmarks/key_pd_bins.py --gt data/d7/val300/annotations.json \\
+        --read outputs/s75/v300_default --montage outputs/s75/key_shallow_vs_fresh.png
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from itertools import pairwise
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from lunarnav_ml.data.coco import read_coco
+from lunarnav_ml.errors import InputError, LunarNavError
+from lunarnav_ml.eval.pd import MatchResult, in_key_set, match_craters
+from lunarnav_ml.eval.predict import check_coco_results
+from lunarnav_ml.utils.atomic import check_image_destination, write_image
+from lunarnav_ml.utils.jsonfile import read_json_file
+
+FRESH_DD, FRESH_RIM, SHALLOW_DD = 0.12, 0.8, 0.08
+BINS = {  # label attribute: (value of an annotation, bin edges)
+    "depth/diameter": (lambda a: a["depth_m"] / a["diameter_m"], (0.0, 0.08, 0.12, 0.16, np.inf)),
+    "visible rim fraction": (lambda a: a.get("visible_rim_fraction", 1.0), (0.0, 0.5, 0.8, np.inf)),
+    "near-rim range m": (lambda a: a["near_rim_range_m"], (0.0, 10.0, 15.0, np.inf)),
+}
+TILE_W, TILE_H, PER_ROW = 192, 96, 6
+
+
+def _dd(ann: dict[str, Any]) -> float:
+    return float(ann["depth_m"]) / float(ann["diameter_m"])
+
+
+def _is_fresh(ann: dict[str, Any], dd: float = FRESH_DD) -> bool:
+    return _dd(ann) >= dd and ann.get("visible_rim_fraction", 1.0) >= FRESH_RIM
+
+
+def key_bins(gt: dict[str, Any], results: list[dict[str, Any]], threshold: float
+             ) -> tuple[dict[str, Any], MatchResult]:
+    """The key craters' Pd at ``threshold``, overall and per bin, and the match itself.
+
+    Raises:
+        InputError: a key crater label without ``depth_m`` and a positive ``diameter_m``.
+    """
+    match = match_craters(gt, results, threshold)
+    key = np.array([in_key_set(a) for a in match.gt], bool)
+    for a in (a for a, k in zip(match.gt, key, strict=True) if k):
+        if not (isinstance(a.get("depth_m"), int | float) and float(a.get("diameter_m", 0)) > 0):
+            raise InputError(f"annotation {a.get('id')}: depth_m and a positive diameter_m "
+                             f"needed, got {a.get('depth_m')!r}, {a.get('diameter_m')!r}")
+    hit = match.hit
+
+    def cell(mask: np.ndarray) -> dict[str, Any]:
+        return {"n": int(mask.sum()), "pd": float(hit[mask].mean()) if mask.any() else None}
+
+    fresh = key & np.array([_is_fresh(a) for a in match.gt], bool)
+    out: dict[str, Any] = {"threshold": threshold, "all": cell(key), "fresh": cell(fresh),
+                           "rest": cell(key & ~fresh), "bins": {}}
+    for name, (value, edges) in BINS.items():
+        v = np.array([value(a) if k else np.nan for a, k in zip(match.gt, key, strict=True)])
+        out["bins"][name] = [{"from": lo, "to": hi, **cell(key & (v >= lo) & (v < hi))}
+                             for lo, hi in pairwise(edges)]
+    return out, match
+
+
+def _tile(root: Path, image: dict[str, Any], ann: dict[str, Any], found: bool) -> np.ndarray:
+    """A crop around one labelled crater (twice as wide as high), its box drawn, with d/D and
+    range written on it."""
+    frame = cv2.imread(str(root / image["file_name"]), cv2.IMREAD_COLOR)
+    if frame is None:
+        raise InputError(f"{root / image['file_name']}: cannot read image")
+    x, y, w, h = (float(v) for v in ann["bbox"])
+    side = max(w, 2 * h, 24.0) * 1.4
+    cx, cy = x + w / 2, y + h / 2
+    x0, y0 = int(max(0, cx - side / 2)), int(max(0, cy - side / 4))
+    x1 = int(min(frame.shape[1], max(x0 + 1, cx + side / 2)))
+    y1 = int(min(frame.shape[0], max(y0 + 1, cy + side / 4)))
+    cv2.rectangle(frame, (int(x), int(y)), (int(x + w), int(y + h)),
+                  (0, 200, 0) if found else (0, 0, 255), 1)
+    tile = cv2.resize(frame[y0:y1, x0:x1], (TILE_W, TILE_H), interpolation=cv2.INTER_NEAREST)
+    cv2.putText(tile, f"d/D {_dd(ann):.2f} {ann['near_rim_range_m']:.0f} m", (3, 12),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.38, (255, 255, 0), 1)
+    return tile
+
+
+def montage(gt: dict[str, Any], match: MatchResult, root: Path, seed: int = 0,
+            per_group: int = 24) -> np.ndarray:
+    """Up to ``per_group`` shallow key craters (d/D < 0.08) above as many fresh ones (d/D >=
+    0.16, rim >= 0.8 visible), drawn with ``seed``; BGR uint8."""
+    rng = np.random.default_rng(seed)
+    images = {im["id"]: im for im in gt["images"]}
+    key = [k for k, a in enumerate(match.gt) if in_key_set(a)]
+    groups = ([k for k in key if _dd(match.gt[k]) < SHALLOW_DD],
+              [k for k in key if _is_fresh(match.gt[k], 0.16)])
+    rows = []
+    for group in groups:
+        pick = sorted(rng.choice(group, min(per_group, len(group)), replace=False)) if group \
+            else []
+        tiles = [_tile(root, images[match.gt[k]["image_id"]], match.gt[k], bool(match.hit[k]))
+                 for k in pick]
+        tiles += [np.zeros((TILE_H, TILE_W, 3), np.uint8)] * (-len(tiles) % PER_ROW)
+        rows += [np.hstack(tiles[i:i + PER_ROW]) for i in range(0, len(tiles), PER_ROW)]
+        rows.append(np.full((8, TILE_W * PER_ROW, 3), 255, np.uint8))
+    return np.vstack(rows[:-1])
+
+
+def _pd(cell: dict[str, Any]) -> str:
+    return "-" if cell["pd"] is None else f"{cell['pd']:.3f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--gt", required=True, help="COCO annotations with the crater label keys")
+    ap.add_argument("--read", required=True,
+                    help="a `lunarnav eval --task detection --out` folder: its detections.json "
+                         "and metrics.json (the operating threshold)")
+    ap.add_argument("--montage", help="PNG of shallow key craters above fresh ones")
+    ap.add_argument("--seed", type=int, default=0, help="(--montage) which craters are drawn")
+    args = ap.parse_args(argv)
+    try:
+        if args.montage:
+            check_image_destination(args.montage)
+        gt = read_coco(args.gt, check_files=False)[0]
+        read = Path(args.read)
+        dets = check_coco_results(read_json_file(read / "detections.json", "detections"),
+                                  read / "detections.json")
+        metrics = read_json_file(read / "metrics.json", "metrics", dict)
+        threshold = metrics.get("threshold")
+        if not (isinstance(threshold, int | float) and np.isfinite(threshold)):
+            raise InputError(f"{read / 'metrics.json'}: threshold: expected a number, got "
+                             f"{threshold!r}")
+        figures, match = key_bins(gt, dets, float(threshold))
+        if args.montage:
+            write_image(args.montage, montage(gt, match, Path(args.gt).parent, args.seed))
+    except LunarNavError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"threshold {threshold:.3f}: key Pd {_pd(figures['all'])} (n {figures['all']['n']}); "
+          f"fresh and whole {_pd(figures['fresh'])} (n {figures['fresh']['n']}); the rest "
+          f"{_pd(figures['rest'])} (n {figures['rest']['n']})")
+    for name, cells in figures["bins"].items():
+        print(f"  {name}: " + "; ".join(f"[{c['from']:g}, {c['to']:g}) {_pd(c)} (n {c['n']})"
+                                        for c in cells))
+    if args.montage:
+        print(f"-> {args.montage}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
