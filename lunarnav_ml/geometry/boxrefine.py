@@ -232,8 +232,8 @@ class BoxRefinedDetector:
     def describe(self) -> str:
         """One line for report titles."""
         inner = getattr(self.predictor, "describe", None)
-        line = (inner() + "; " if callable(inner) else "") + refined_by(
-            self.refiner.path, bool(getattr(self.refiner, "has_quality", False)))
+        line = (inner() + "; " if callable(inner) else "") + refined_by(self.refiner.path,
+                                                                         self.rescores)
         if self.rescorer is not None:
             from lunarnav_ml.geometry.boxrescore import rescored_by
 
@@ -251,17 +251,33 @@ class BoxRefinedDetector:
         being at most 1), and what ends below ``conf_thres`` is dropped. With a rescorer it runs
         at most at :data:`~lunarnav_ml.geometry.boxrescore.RAW_FLOOR` (the rescorer counts the
         weak boxes around each one, as it was fitted)."""
-        rescored = bool(getattr(self.refiner, "has_quality", False))
-        raw_conf = conf_thres ** 2 if rescored else conf_thres
-        if self.rescorer is not None:  # its score is no longer bounded by the detector's, and
-            from lunarnav_ml.geometry.boxrescore import RAW_FLOOR  # it counts weak neighbours
+        preds = self.predictor.predict(images, self.raw_conf(conf_thres), iou_thres, max_det)
+        return [self.above(self.refine(image, pred, iou_thres), conf_thres)
+                for image, pred in zip(images, preds)]
+
+    @property
+    def rescores(self) -> bool:
+        """Whether the crater scores change here (a refiner with a quality output)."""
+        return bool(getattr(self.refiner, "has_quality", False))
+
+    def raw_conf(self, conf_thres: float) -> float:
+        """The wrapped detector's score floor for final scores of at least ``conf_thres``:
+        ``conf_thres`` squared with a quality output (sqrt(score x quality) >= t needs score >=
+        t^2), at most :data:`~lunarnav_ml.geometry.boxrescore.RAW_FLOOR` with a rescorer (its
+        score is not bounded by the detector's, and it counts the weak boxes around each one,
+        as it was fitted), ``conf_thres`` itself otherwise."""
+        raw_conf = conf_thres ** 2 if self.rescores else conf_thres
+        if self.rescorer is not None:
+            from lunarnav_ml.geometry.boxrescore import RAW_FLOOR
 
             raw_conf = min(raw_conf, RAW_FLOOR)
-        preds = self.predictor.predict(images, raw_conf, iou_thres, max_det)
-        out = [self.refine(image, pred, iou_thres) for image, pred in zip(images, preds)]
-        if rescored:
-            out = [{k: v[pred["scores"] >= conf_thres] for k, v in pred.items()} for pred in out]
-        return out
+        return raw_conf
+
+    def above(self, pred: dict[str, np.ndarray], conf_thres: float) -> dict[str, np.ndarray]:
+        """:meth:`refine`'s output less what scores below ``conf_thres`` (when the scores were
+        changed; otherwise the wrapped detector's floor did it)."""
+        return ({k: v[pred["scores"] >= conf_thres] for k, v in pred.items()} if self.rescores
+                else pred)
 
     def refine(self, image: np.ndarray, pred: dict[str, np.ndarray], iou_thres: float,
                features: bool = False) -> dict[str, np.ndarray]:

@@ -18,7 +18,7 @@ import numpy as np
 
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.geometry._checks import as_image
-from lunarnav_ml.geometry.boxrefine import BoxRefiner
+from lunarnav_ml.geometry.boxrefine import CRATER_LABEL, BoxRefinedDetector, BoxRefiner
 from lunarnav_ml.geometry.ellipse import BOX_FALLBACK, Ellipse, EllipseFitter
 from lunarnav_ml.geometry.frames import StereoRig
 from lunarnav_ml.geometry.lifter import LifterConfig, LiftResult, lift_crater, rows_needed
@@ -84,7 +84,9 @@ class StereoCraterLocalizer:
     Args:
         detector: box detector (normally :class:`~lunarnav_ml.runtime.OnnxDetector`).
         rig: the rectified rig and its pose on the rover.
-        conf_thres: operating score threshold of crater boxes.
+        conf_thres: operating score threshold of crater boxes: on the detector's scores, or
+            with a box refiner that has a quality output, on the refined scores
+            sqrt(score x quality), as ``lunarnav detect`` and ``lunarnav eval`` apply it.
         iou_thres: NMS IoU threshold.
         stereo: disparity stage (SGBM settings); default sized to each frame's width
             (:meth:`SGBMStereo.for_width`, as the geometry evaluation runs it).
@@ -104,6 +106,10 @@ class StereoCraterLocalizer:
             full-resolution crop before the lift
             (:class:`~lunarnav_ml.geometry.boxrefine.BoxRefiner`, onnxruntime); None: the
             detector's boxes as they are. The crater's box in the output is the refined one.
+            With a quality output it also scores each crater box sqrt(score x quality), and
+            NMS runs again over the refined boxes
+            (:class:`~lunarnav_ml.geometry.boxrefine.BoxRefinedDetector`, the path ``lunarnav
+            eval`` reads its figures on).
     """
 
     def __init__(self, detector: BoxDetector, rig: StereoRig, *, conf_thres: float = 0.25,
@@ -125,12 +131,27 @@ class StereoCraterLocalizer:
         self.lift_from = lift_from
         self.refiner = refiner
         self.box_refiner = box_refiner
+        self.scorer = None  # refines and rescores the crater boxes: a refiner's quality output
+        if box_refiner is not None and box_refiner.has_quality:
+            if self.crater_label != CRATER_LABEL:
+                raise ConfigError(f"detector classes {names}: the box refiner reads crater boxes "
+                                  f"as label {CRATER_LABEL}, these are label {self.crater_label}")
+            self.scorer = BoxRefinedDetector(detector, box_refiner)
         self.timing_ms: dict[str, float] = {}  # the last frame's, see __call__
 
     def detect_boxes(self, left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Crater boxes (K, 4) xyxy px and scores (K,) on the left image."""
-        det = self.detector.predict([left], conf_thres=self.conf_thres,
-                                    iou_thres=self.iou_thres)[0]
+        """Crater boxes (K, 4) xyxy px and scores (K,) on the left image, at ``conf_thres``:
+        the detector's, or with a quality box refiner refined and rescored (``timing_ms``
+        then gets the network's and the refinement's times, "detect" and "box_refine")."""
+        t0 = time.perf_counter()
+        conf = self.conf_thres if self.scorer is None else self.scorer.raw_conf(self.conf_thres)
+        det = self.detector.predict([left], conf_thres=conf, iou_thres=self.iou_thres)[0]
+        if self.scorer is not None:
+            t1 = time.perf_counter()
+            det = self.scorer.above(self.scorer.refine(left, det, self.iou_thres),
+                                    self.conf_thres)
+            self.timing_ms.update(detect=1e3 * (t1 - t0),
+                                  box_refine=1e3 * (time.perf_counter() - t1))
         mine = det["labels"] == self.crater_label
         return det["boxes"][mine], det["scores"][mine]
 
@@ -180,15 +201,16 @@ class StereoCraterLocalizer:
             raise InputError(f"right: expected the left image's shape {left.shape}, "
                              f"got {right.shape}")
         t0 = time.perf_counter()
+        self.timing_ms = {"detect": 0.0, "box_refine": 0.0, "stereo": 0.0, "craters": 0.0}
         boxes, scores = self.detect_boxes(left)
         t1 = time.perf_counter()
-        self.timing_ms = {"detect": 1e3 * (t1 - t0), "box_refine": 0.0, "stereo": 0.0,
-                          "craters": 0.0}
+        if self.scorer is None:
+            self.timing_ms["detect"] = 1e3 * (t1 - t0)
         if len(boxes) == 0:
             return []
         pair = (as_image("left", left), as_image("right", right))  # gray once a frame
         xywh = np.column_stack([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]])
-        if self.box_refiner is not None:  # the detector's edges moved onto the rims
+        if self.box_refiner is not None and self.scorer is None:  # edges only onto the rims
             xywh = self.box_refiner(pair[0], xywh)
             boxes = np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]])
             self.timing_ms["box_refine"] = 1e3 * (time.perf_counter() - t1)

@@ -145,3 +145,49 @@ def test_the_box_refiner_moves_the_detector_boxes(scene):
     assert not np.allclose(craters[0].box, plain[0].box)  # the refined box is the one kept
     assert loc.timing_ms["box_refine"] > 0 and plain[0].box[2] - plain[0].box[0] < 0.85 * w + 1
     assert plain[0].ok and "box_refine" in loc.timing_ms
+
+
+class QualityRefiner:
+    """A box refiner with a quality output that leaves the edges and rates every box alike."""
+
+    has_quality = True
+    path = "quality.onnx"
+
+    def __init__(self, quality):
+        self.quality = quality
+
+    def refine_scored(self, gray, xywh):
+        return np.asarray(xywh, np.float64), np.full(len(xywh), self.quality, np.float32)
+
+    def __call__(self, gray, xywh):
+        raise AssertionError("with a quality output the boxes are refined while scored")
+
+
+class AskedDetector(TruthDetector):
+    """A :class:`TruthDetector` that records the floor it was asked for."""
+
+    def predict(self, images, conf_thres=0.25, iou_thres=0.6):
+        self.asked = conf_thres
+        return super().predict(images, conf_thres, iou_thres)
+
+
+def test_a_quality_refiner_scores_the_crater_boxes_as_detect_does(scene):
+    """``conf_thres`` holds for sqrt(score x quality), as in ``lunarnav detect``: the network
+    runs at its square, and a box it scored above the threshold can fall under it."""
+    det = AskedDetector(scene.box)
+    loc = StereoCraterLocalizer(det, scene.rig, conf_thres=0.5, box_refiner=QualityRefiner(0.4))
+    craters = loc(rgb(scene.left), rgb(scene.right))
+    assert det.asked == pytest.approx(0.25)
+    assert len(craters) == 1 and craters[0].score == pytest.approx(np.sqrt(0.9 * 0.4))
+    assert craters[0].ok, craters[0].reason
+    assert loc.timing_ms["detect"] > 0 and loc.timing_ms["box_refine"] > 0
+    strict = StereoCraterLocalizer(AskedDetector(scene.box), scene.rig, conf_thres=0.7,
+                                   box_refiner=QualityRefiner(0.4))
+    assert strict(rgb(scene.left), rgb(scene.right)) == []  # 0.9 raw, 0.6 refined
+
+
+def test_a_quality_refiner_needs_craters_as_label_one(scene):
+    det = TruthDetector(scene.box)
+    det.class_names = ("rock", "crater", "artifact")
+    with pytest.raises(ConfigError, match="label 1"):
+        StereoCraterLocalizer(det, scene.rig, box_refiner=QualityRefiner(0.5))
