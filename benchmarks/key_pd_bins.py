@@ -3,7 +3,8 @@
 threshold, split by label attribute.
 
 Printed: the key Pd over all key craters, over the fresh and whole ones (depth / diameter >=
-0.12 and at least 0.8 of the rim visible) and over the rest; then per bin of depth / diameter,
+0.12 and at least 0.8 of the rim visible) and over the rest; the most it could reach with the
+shallow ones (d/D < 0.08) all missed and every other found; then per bin of depth / diameter,
 visible rim fraction and near-rim range. With ``--montage``, a PNG of up to 24 key craters with
 d/D < 0.08 above up to 24 fresh ones (d/D >= 0.16, rim >= 0.8 visible), drawn at random with
 ``--seed``: the labelled box in green where it was found, red where missed.
@@ -69,8 +70,14 @@ def key_bins(gt: dict[str, Any], results: list[dict[str, Any]], threshold: float
         return {"n": int(mask.sum()), "pd": float(hit[mask].mean()) if mask.any() else None}
 
     fresh = key & np.array([_is_fresh(a) for a in match.gt], bool)
+    shallow = key & np.array([k and _dd(a) < SHALLOW_DD for a, k in zip(match.gt, key,
+                                                                        strict=True)], bool)
     out: dict[str, Any] = {"threshold": threshold, "all": cell(key), "fresh": cell(fresh),
-                           "rest": cell(key & ~fresh), "bins": {}}
+                           "rest": cell(key & ~fresh), "shallow": cell(shallow),
+                           # key Pd if every key crater were found but the shallow ones
+                           "cap_without_shallow": (float((key & ~shallow).sum() / key.sum())
+                                                   if key.any() else None),
+                           "bins": {}}
     for name, (value, edges) in BINS.items():
         v = np.array([value(a) if k else np.nan for a, k in zip(match.gt, key, strict=True)])
         out["bins"][name] = [{"from": lo, "to": hi, **cell(key & (v >= lo) & (v < hi))}
@@ -153,6 +160,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"threshold {threshold:.3f}: key Pd {_pd(figures['all'])} (n {figures['all']['n']}); "
           f"fresh and whole {_pd(figures['fresh'])} (n {figures['fresh']['n']}); the rest "
           f"{_pd(figures['rest'])} (n {figures['rest']['n']})")
+    if figures["cap_without_shallow"] is not None:
+        print(f"  with the {figures['shallow']['n']} of d/D < {SHALLOW_DD:g} all missed, key Pd "
+              f"could reach at most {figures['cap_without_shallow']:.3f}")
     for name, cells in figures["bins"].items():
         print(f"  {name}: " + "; ".join(f"[{c['from']:g}, {c['to']:g}) {_pd(c)} (n {c['n']})"
                                         for c in cells))

@@ -40,6 +40,7 @@ def test_key_craters_are_split_by_attribute_at_the_threshold():
     fig, match = bins.key_bins(_gt(), _dets(), 0.5)
     assert fig["all"] == {"n": 4, "pd": 0.5}
     assert fig["fresh"] == {"n": 2, "pd": 0.5} and fig["rest"] == {"n": 2, "pd": 0.5}
+    assert fig["shallow"] == {"n": 2, "pd": 0.5} and fig["cap_without_shallow"] == 0.5
     dd = {c["from"]: (c["n"], c["pd"]) for c in fig["bins"]["depth/diameter"]}
     assert dd[0.0] == (2, 0.5) and dd[0.08] == (0, None) and dd[0.16] == (2, 0.5)
     rim = {c["from"]: (c["n"], c["pd"]) for c in fig["bins"]["visible rim fraction"]}
@@ -64,6 +65,7 @@ def test_cli_prints_the_bins_and_draws_the_montage(tmp_path, capsys):
                       "--montage", str(png)]) == 0
     out = capsys.readouterr().out
     assert "key Pd 0.500 (n 4)" in out and "depth/diameter: [0, 0.08) 0.500 (n 2)" in out
+    assert "could reach at most 0.500" in out
     image = cv2.imread(str(png))
     # one row of shallow tiles, the white gap, one row of fresh tiles
     assert image.shape == (2 * bins.TILE_H + 8, bins.PER_ROW * bins.TILE_W, 3)
