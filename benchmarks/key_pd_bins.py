@@ -7,7 +7,8 @@ Printed: the key Pd over all key craters, over the fresh and whole ones (depth /
 shallow ones (d/D < 0.08) all missed and every other found; then per bin of depth / diameter,
 visible rim fraction and near-rim range. With ``--montage``, a PNG of up to 24 key craters with
 d/D < 0.08 above up to 24 fresh ones (d/D >= 0.16, rim >= 0.8 visible), drawn at random with
-``--seed``: the labelled box in green where it was found, red where missed.
+``--seed``: the labelled box in green where it was found, red where missed
+(``pd_diagnosis.py``'s tiles).
 
 Session 75 read it on `val300`: 72 % of the key craters are shallow or part-hidden, the fresh
 ones reach 0.78-0.79, those with d/D < 0.08 0.02-0.08 (BENCHMARKS.md, issue 4, "Colour frames
@@ -24,8 +25,8 @@ from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
+from pd_diagnosis import crater_tile
 
 from lunarnav_ml.data.coco import read_coco
 from lunarnav_ml.errors import InputError, LunarNavError
@@ -40,7 +41,8 @@ BINS = {  # label attribute: (value of an annotation, bin edges)
     "visible rim fraction": (lambda a: a.get("visible_rim_fraction", 1.0), (0.0, 0.5, 0.8, np.inf)),
     "near-rim range m": (lambda a: a["near_rim_range_m"], (0.0, 10.0, 15.0, np.inf)),
 }
-TILE_W, TILE_H, PER_ROW = 192, 96, 6
+TILE_W = TILE_H = 160  # pd_diagnosis.crater_tile's
+PER_ROW = 6
 
 
 def _dd(ann: dict[str, Any]) -> float:
@@ -69,9 +71,9 @@ def key_bins(gt: dict[str, Any], results: list[dict[str, Any]], threshold: float
     def cell(mask: np.ndarray) -> dict[str, Any]:
         return {"n": int(mask.sum()), "pd": float(hit[mask].mean()) if mask.any() else None}
 
-    fresh = key & np.array([_is_fresh(a) for a in match.gt], bool)
-    shallow = key & np.array([k and _dd(a) < SHALLOW_DD for a, k in zip(match.gt, key,
-                                                                        strict=True)], bool)
+    fresh = np.array([k and _is_fresh(a) for a, k in zip(match.gt, key, strict=True)], bool)
+    shallow = np.array([k and _dd(a) < SHALLOW_DD for a, k in zip(match.gt, key, strict=True)],
+                       bool)
     out: dict[str, Any] = {"threshold": threshold, "all": cell(key), "fresh": cell(fresh),
                            "rest": cell(key & ~fresh), "shallow": cell(shallow),
                            # key Pd if every key crater were found but the shallow ones
@@ -83,26 +85,6 @@ def key_bins(gt: dict[str, Any], results: list[dict[str, Any]], threshold: float
         out["bins"][name] = [{"from": lo, "to": hi, **cell(key & (v >= lo) & (v < hi))}
                              for lo, hi in pairwise(edges)]
     return out, match
-
-
-def _tile(root: Path, image: dict[str, Any], ann: dict[str, Any], found: bool) -> np.ndarray:
-    """A crop around one labelled crater (twice as wide as high), its box drawn, with d/D and
-    range written on it."""
-    frame = cv2.imread(str(root / image["file_name"]), cv2.IMREAD_COLOR)
-    if frame is None:
-        raise InputError(f"{root / image['file_name']}: cannot read image")
-    x, y, w, h = (float(v) for v in ann["bbox"])
-    side = max(w, 2 * h, 24.0) * 1.4
-    cx, cy = x + w / 2, y + h / 2
-    x0, y0 = int(max(0, cx - side / 2)), int(max(0, cy - side / 4))
-    x1 = int(min(frame.shape[1], max(x0 + 1, cx + side / 2)))
-    y1 = int(min(frame.shape[0], max(y0 + 1, cy + side / 4)))
-    cv2.rectangle(frame, (int(x), int(y)), (int(x + w), int(y + h)),
-                  (0, 200, 0) if found else (0, 0, 255), 1)
-    tile = cv2.resize(frame[y0:y1, x0:x1], (TILE_W, TILE_H), interpolation=cv2.INTER_NEAREST)
-    cv2.putText(tile, f"d/D {_dd(ann):.2f} {ann['near_rim_range_m']:.0f} m", (3, 12),
-                cv2.FONT_HERSHEY_SIMPLEX, 0.38, (255, 255, 0), 1)
-    return tile
 
 
 def montage(gt: dict[str, Any], match: MatchResult, root: Path, seed: int = 0,
@@ -118,8 +100,8 @@ def montage(gt: dict[str, Any], match: MatchResult, root: Path, seed: int = 0,
     for group in groups:
         pick = sorted(rng.choice(group, min(per_group, len(group)), replace=False)) if group \
             else []
-        tiles = [_tile(root, images[match.gt[k]["image_id"]], match.gt[k], bool(match.hit[k]))
-                 for k in pick]
+        tiles = [crater_tile(match.gt[k], images[match.gt[k]["image_id"]], root,
+                             bool(match.hit[k])) for k in pick]
         tiles += [np.zeros((TILE_H, TILE_W, 3), np.uint8)] * (-len(tiles) % PER_ROW)
         rows += [np.hstack(tiles[i:i + PER_ROW]) for i in range(0, len(tiles), PER_ROW)]
         rows.append(np.full((8, TILE_W * PER_ROW, 3), 255, np.uint8))

@@ -273,7 +273,7 @@ def montage(gt: dict[str, Any], rows: list[tuple], thr: float, root: Path, path:
     for keep in (lambda r: r < 0.08, lambda r: r >= 0.16):
         group = [a for a in live if keep(a["depth_m"] / a["diameter_m"])]
         pick = rng.choice(len(group), min(per_group, len(group)), replace=False) if group else []
-        tiles = [_crop(group[k], images[group[k]["image_id"]], root, best[group[k]["id"]] >= thr)
+        tiles = [crater_tile(group[k], images[group[k]["image_id"]], root, best[group[k]["id"]] >= thr)
                  for k in pick]
         blank = np.zeros((160, 160, 3), np.uint8)
         tiles = tiles + [blank] * (-len(tiles) % 6) if tiles else [blank] * 6
@@ -282,9 +282,10 @@ def montage(gt: dict[str, Any], rows: list[tuple], thr: float, root: Path, path:
     return atomic.write_image(path, np.vstack(rows[:-1]))
 
 
-def _crop(ann: dict[str, Any], image: dict[str, Any], root: Path, found: bool) -> np.ndarray:
+def crater_tile(ann: dict[str, Any], image: dict[str, Any], root: Path, found: bool
+                ) -> np.ndarray:
     """A 160 px tile around one crater: its box (green: found at the threshold), depth/diameter
-    and the sun's zenith angle."""
+    and the sun's zenith angle (also ``key_pd_bins.py``'s montage)."""
     im = cv2.imread(str(root / image["file_name"]))
     if im is None:
         raise InputError(f"{root / image['file_name']}: cannot read the image")

@@ -50,6 +50,10 @@ def test_key_craters_are_split_by_attribute_at_the_threshold():
     # a lower threshold finds the second fresh crater too
     assert bins.key_bins(_gt(), _dets(), 0.2)[0]["fresh"]["pd"] == 1.0
     assert match.hit.sum() == 3  # the far crater is found, but it is not a key crater
+    # only the key craters need a depth
+    gt = _gt()
+    del gt["annotations"][4]["depth_m"]
+    assert bins.key_bins(gt, _dets(), 0.5)[0] == fig
 
 
 def test_cli_prints_the_bins_and_draws_the_montage(tmp_path, capsys):
