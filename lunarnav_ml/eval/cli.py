@@ -23,6 +23,12 @@ from typing import Any
 
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.eval.predict import read_coco_results
+from lunarnav_ml.eval.smallread import (
+    SmallBoxReadConfig,
+    SmallBoxReadPredictor,
+    add_small_read_arguments,
+    small_read_config,
+)
 from lunarnav_ml.eval.tta import TTAConfig, TTAPredictor, add_tta_arguments, tta_config
 
 SHIPPED = "shipped"  # --refiner without a file
@@ -168,10 +174,15 @@ TASKS = ("detection", "geometry", "baselines-lidar", "baselines-stereo", "transf
 
 
 def load_predictor(path: Path, threads: int, img_size: int | None = None,
-                   tta: TTAConfig | None = None) -> Any:
+                   tta: TTAConfig | None = None, small_read: SmallBoxReadConfig | None = None
+                   ) -> Any:
     """An ONNX file runs through the torch-free runtime; anything else loads as a checkpoint.
     ``img_size``: network input side (default the model's own); ``tta``: wrap it in
-    test-time augmentation."""
+    test-time augmentation; ``small_read``: in a second, larger read of the small boxes (not
+    both)."""
+    if tta is not None and small_read is not None:
+        raise ConfigError("--small-read and --tta: choose one (both read the frame again at "
+                          "other sides)")
     if Path(path).suffix == ".onnx":
         from lunarnav_ml.runtime import OnnxDetector
 
@@ -180,7 +191,17 @@ def load_predictor(path: Path, threads: int, img_size: int | None = None,
         from lunarnav_ml.training.api import load_detector
 
         predictor = load_detector(path, img_size)
+    if small_read is not None:
+        return SmallBoxReadPredictor(predictor, small_read)
     return predictor if tta is None else TTAPredictor(predictor, tta)
+
+
+def predictor_from_args(args: argparse.Namespace, weights: Path) -> Any:
+    """The detector of ``weights`` as the command's ``--threads``, ``--img-size``, ``--tta``,
+    ``--small-read`` and box-refiner arguments ask."""
+    return with_box_refiner(load_predictor(weights, args.threads, args.img_size,
+                                           tta_config(args), small_read_config(args)),
+                            args, weights)
 
 
 def _results_for(args: argparse.Namespace, split: str, model: Callable[[], Any]
@@ -212,8 +233,7 @@ def run_detection(args: argparse.Namespace) -> int:
                          "--val-gt (with --model or --val-results), or --threshold")
     @functools.cache
     def model() -> Any:  # the predictor, loaded once when a split first runs the model
-        return with_box_refiner(load_predictor(args.model, args.threads, args.img_size,
-                                               tta_config(args)), args, args.model)
+        return predictor_from_args(args, args.model)
 
     threshold, val = args.threshold, None
     if threshold is None:
@@ -225,8 +245,9 @@ def run_detection(args: argparse.Namespace) -> int:
     metrics = detection_metrics(gt, results, threshold)
     with atomic.atomic_dir(args.out) as work:
         atomic.write_json(work / "detections.json", results, indent=None)
-        tta = tta_config(args) if args.test_results is None else None
-        notes = [tta.describe()] if tta else []
+        reads = ((tta_config(args), small_read_config(args)) if args.test_results is None
+                 else ())
+        notes = [read.describe() for read in reads if read is not None]
         refiner = getattr(model(), "refiner", None) if args.test_results is None else None
         if refiner is not None:  # the test split's boxes went through it
             from lunarnav_ml.geometry.boxrefine import refined_by
@@ -296,8 +317,7 @@ def run_transfer(args: argparse.Namespace) -> int:
         results = read_coco_results(args.test_results)
     else:  # load_predictor runs .onnx files through onnxruntime, checkpoints through torch
         weights = args.onnx or args.checkpoint or args.model
-        predictor = with_box_refiner(load_predictor(weights, args.threads, args.img_size,
-                                                    tta_config(args)), args, weights)
+        predictor = predictor_from_args(args, weights)
         results = predict_coco(predictor, gt, gt_path.parent, desc="transfer",
                                progress=not args.no_progress)
         if hasattr(predictor, "describe"):
@@ -359,6 +379,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--img-size", type=int, default=None,
                    help="(detection, transfer) network input side, px; default the model's")
     add_tta_arguments(p)
+    add_small_read_arguments(p)
     p.add_argument("--overlays", type=int, default=12, help="overlay images to write")
     p.add_argument("--ellipse-source", choices=("box", "fit", "label"), default="box",
                    help="(geometry) the ellipse each crater is lifted from: the box's inscribed "

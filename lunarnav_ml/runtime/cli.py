@@ -17,6 +17,7 @@ from lunarnav_ml.eval.cli import (
     add_box_refiner_arguments,
     add_lifter_arguments,
     add_refiner_arguments,
+    add_small_read_arguments,
     lifter_overrides,
     load_box_refiner,
     load_refiner,
@@ -59,6 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--lift-from", default="box", choices=("box", "fit"),
                    help="lift each crater from the box's inscribed ellipse (default) or from "
                         "the fitted rim ellipse; the fitted one is reported either way")
+    add_small_read_arguments(p)
     add_refiner_arguments(p)
     add_box_refiner_arguments(p)
     add_lifter_arguments(p)
@@ -81,7 +83,7 @@ def read_camera(path: Path) -> dict[str, float]:
 
 def run_localize(args: argparse.Namespace) -> int:
     """Localize the pair's craters; write ``craters3d.json`` and ``overlay.jpg``."""
-    from lunarnav_ml.eval.cli import load_predictor
+    from lunarnav_ml.eval.cli import load_predictor, small_read_config
     from lunarnav_ml.geometry.frames import StereoRig
     from lunarnav_ml.geometry.refine import default_lifter
     from lunarnav_ml.geometry.stereo import SGBMStereo
@@ -109,13 +111,16 @@ def run_localize(args: argparse.Namespace) -> int:
     lifter = lifter_overrides(args, default_lifter(refiner))
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
-    localizer = StereoCraterLocalizer(load_predictor(weights, args.threads, args.img_size), rig,
+    detector = load_predictor(weights, args.threads, args.img_size,
+                              small_read=small_read_config(args))
+    localizer = StereoCraterLocalizer(detector, rig,
                                       conf_thres=args.conf, iou_thres=args.iou, stereo=stereo,
                                       lift_from=args.lift_from, refiner=refiner,
                                       box_refiner=box_refiner, lifter=lifter)
     craters = localizer(left, right)
     record = {"left": str(args.left), "right": str(args.right), "camera": camera,
               "weights": str(weights), "conf": args.conf, "iou": args.iou,
+              "small_read": args.small_read,
               "lift_from": args.lift_from, "min_flank_rise_px": lifter.min_flank_rise_px,
               "refiner": None if refiner is None else str(refiner.path),
               "box_refiner": None if box_refiner is None else str(box_refiner.path),

@@ -9,7 +9,8 @@ from pathlib import Path
 
 from lunarnav_ml.errors import ConfigError
 from lunarnav_ml.eval.cli import add_box_refiner_arguments, add_box_rescorer_arguments
-from lunarnav_ml.eval.tta import add_tta_arguments, tta_config
+from lunarnav_ml.eval.smallread import add_small_read_arguments
+from lunarnav_ml.eval.tta import add_tta_arguments
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
 
@@ -47,7 +48,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="overlays in gallery.png, spread over the images (0: no gallery)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_tta_arguments(p)
-    add_box_refiner_arguments(p, when="(after --tta)",
+    add_small_read_arguments(p)
+    add_box_refiner_arguments(p, when="(after --tta or --small-read)",
                               off="write the detector's boxes as they are")
     add_box_rescorer_arguments(p)
     p.set_defaults(func=run_detect)
@@ -268,7 +270,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 def run_detect(args: argparse.Namespace) -> int:
     """Detect on the source images and write results and overlays."""
-    from lunarnav_ml.eval.cli import load_predictor, with_box_refiner
+    from lunarnav_ml.eval.cli import predictor_from_args
     from lunarnav_ml.training.detect import detect_files, list_images
 
     for name in ("conf", "iou", "overlay_conf"):
@@ -285,8 +287,7 @@ def run_detect(args: argparse.Namespace) -> int:
     if args.weights is None and not weights.is_file():
         raise ConfigError(f"no --weights given and no shipped weights at {weights}")
     files = list_images(args.source)
-    detector = with_box_refiner(load_predictor(weights, args.threads, args.img_size,
-                                               tta_config(args)), args, weights)
+    detector = predictor_from_args(args, weights)
     out = detect_files(detector, files, args.out, conf_thres=args.conf, iou_thres=args.iou,
                        overlay_thres=args.overlay_conf, batch=args.batch,
                        progress=not args.quiet, gallery=args.gallery)

@@ -1,0 +1,143 @@
+"""The second, larger read of the small boxes: what it keeps, the side it restores, bad options
+and real models."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.eval.cli import load_predictor
+from lunarnav_ml.eval.smallread import SmallBoxReadConfig, SmallBoxReadPredictor
+from lunarnav_ml.eval.tta import TTAConfig
+from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
+
+
+def _pred(rows):
+    rows = np.array(rows, np.float64).reshape(-1, 6)
+    return {"boxes": rows[:, :4].astype(np.float32), "scores": rows[:, 4].astype(np.float32),
+            "labels": rows[:, 5].astype(np.int64)}
+
+
+class TwoSides:
+    """At its own side (96) a big crater box and a faint small one; at 192 the small one again,
+    stronger and a pixel taller, a second small one, and a big box too."""
+
+    strides = (8, 16, 32)
+    class_names = ("crater", "rock", "artifact")
+
+    def __init__(self, fail_at=None):
+        self.img_size, self.sides_run, self.fail_at = 96, [], fail_at
+
+    def set_img_size(self, side):
+        self.img_size = side
+
+    def predict(self, images, conf_thres=0.001, iou_thres=0.6, max_det=300):
+        self.sides_run.append(self.img_size)
+        if self.img_size == self.fail_at:
+            raise RuntimeError("boom")
+        if self.img_size == 96:
+            rows = [[0, 0, 50, 50, 0.8, 1], [10, 10, 14, 14, 0.3, 1]]
+        else:
+            rows = [[0, 0, 60, 55, 0.95, 1], [10, 10, 14, 15, 0.7, 1], [70, 40, 74, 44, 0.5, 2]]
+        return [_pred(rows) for _ in images]
+
+
+def test_the_larger_read_adds_only_its_small_boxes_and_repeats_are_suppressed():
+    fake = TwoSides()
+    reader = SmallBoxReadPredictor(fake, SmallBoxReadConfig(side=192))
+    image = np.zeros((60, 100, 3), np.uint8)  # 0.96 of the frame at the model's own side
+    (pred,) = reader.predict([image])
+    assert fake.sides_run[-2:] == [96, 192] and fake.img_size == 96
+    # the 55 px box is 52.8 px high at 96: the first read's own big box stays instead
+    np.testing.assert_allclose(pred["boxes"], [[0, 0, 50, 50], [10, 10, 14, 15],
+                                               [70, 40, 74, 44]])
+    np.testing.assert_allclose(pred["scores"], [0.8, 0.7, 0.5], rtol=1e-6)
+    assert pred["labels"].tolist() == [1, 1, 2]
+    assert pred["boxes"].dtype == np.float32 and pred["labels"].dtype == np.int64
+    (capped,) = reader.predict([image], max_det=2)
+    assert len(capped["scores"]) == 2
+    # a lower cut keeps none of the second read's boxes: the first read as it was
+    strict = SmallBoxReadPredictor(TwoSides(), SmallBoxReadConfig(side=192, below_px=3))
+    (own,) = strict.predict([image])
+    np.testing.assert_allclose(own["scores"], [0.8, 0.3], rtol=1e-6)
+    assert reader.class_names == ("crater", "rock", "artifact")
+    assert reader.predict([]) == []
+
+
+def test_the_side_is_restored_when_the_second_read_fails():
+    fake = TwoSides(fail_at=192)
+    reader = SmallBoxReadPredictor(fake, SmallBoxReadConfig(side=192))
+    with pytest.raises(RuntimeError, match="boom"):
+        reader.predict([np.zeros((60, 100, 3), np.uint8)])
+    assert fake.img_size == 96
+
+
+@pytest.mark.parametrize("kwargs, field", [({"side": 0}, "--small-read"),
+                                           ({"side": 640.0}, "--small-read"),
+                                           ({"side": True}, "--small-read"),
+                                           ({"side": 640, "below_px": 0.0}, "--small-read-below"),
+                                           ({"side": 640, "below_px": math.nan},
+                                            "--small-read-below")])
+def test_config_rejects_bad_values(kwargs, field):
+    with pytest.raises(ConfigError, match=field):
+        SmallBoxReadConfig(**kwargs)
+
+
+def test_a_side_not_larger_than_the_models_own_and_tta_together_are_refused():
+    with pytest.raises(ConfigError, match="not larger than the model's own side, 96 px"):
+        SmallBoxReadPredictor(TwoSides(), SmallBoxReadConfig(side=96))
+    with pytest.raises(ConfigError, match="choose one"):
+        load_predictor(DEFAULT_WEIGHTS, 1, 160, TTAConfig(), SmallBoxReadConfig(side=320))
+
+
+@pytest.fixture(scope="module")
+def frame():
+    rng = np.random.default_rng(0)
+    image = np.clip(rng.normal(120, 10, (300, 400, 3)), 0, 255).astype(np.uint8)
+    for cx, cy, a in ((200, 160, 60), (320, 240, 9), (80, 250, 7)):  # one big, two small
+        cv2.ellipse(image, (cx, cy), (a, a // 2 + 1), 0, 0, 360, (50, 50, 50), -1)
+        cv2.ellipse(image, (cx, cy), (a, a // 2 + 1), 0, 180, 360, (230, 230, 230), 2)
+    return image
+
+
+def test_real_models_with_a_second_read(frame, onnx_path, onnx_static_path):
+    predictor = load_predictor(DEFAULT_WEIGHTS, 1, 160, small_read=SmallBoxReadConfig(320))
+    (pred,) = predictor.predict([frame])
+    assert predictor.predictor.img_size == 160
+    (own,) = predictor.predictor.predict([frame])
+    assert len(pred["scores"]) > 0 and np.all(np.diff(pred["scores"]) <= 0)
+    assert not np.array_equal(pred["boxes"], own["boxes"])  # the second read added boxes
+    (pred,) = load_predictor(onnx_path, 1, None, small_read=SmallBoxReadConfig(192)).predict(
+        [frame])
+    assert pred["boxes"].shape == (len(pred["scores"]), 4)
+    with pytest.raises(ConfigError, match="fixed input"):
+        load_predictor(onnx_static_path, 1, None, small_read=SmallBoxReadConfig(192))
+
+
+def test_detection_report_names_the_second_read(tmp_path, onnx_path):
+    from lunarnav_ml.cli import main
+    from tests.detector_fixtures import make_coco
+
+    gt = make_coco(tmp_path / "set", n_images=3, size=96)
+    for name, flags in (("plain", []), ("read", ["--small-read", "192"])):
+        assert main(["eval", "--task", "detection", "--test-gt", str(gt), "--model",
+                     str(onnx_path), "--threshold", "0.5", "--out", str(tmp_path / name),
+                     "--no-progress", "--overlays", "0", *flags]) == 0
+    line = SmallBoxReadConfig(192).describe()
+    assert line == "boxes under 15 px high read again at 192 px"
+    assert line not in (tmp_path / "plain" / "report.md").read_text()
+    assert line in (tmp_path / "read" / "report.md").read_text()
+
+def test_a_bad_second_read_is_one_line_naming_the_option(tmp_path, onnx_path, capsys):
+    from lunarnav_ml.cli import main
+    from tests.detector_fixtures import make_coco
+
+    gt = make_coco(tmp_path / "set", n_images=1, size=96)
+    assert main(["eval", "--task", "detection", "--test-gt", str(gt), "--model", str(onnx_path),
+                 "--threshold", "0.5", "--out", str(tmp_path / "bad"), "--small-read",
+                 "32"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--small-read: 32 px is not larger" in err and "Traceback" not in err
+    assert not (tmp_path / "bad").exists()
