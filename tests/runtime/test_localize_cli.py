@@ -36,6 +36,20 @@ def _run(root, *extra):
                  str(root / "camera.json"), *extra])
 
 
+def _same_craters_as_detect(root, out, small_read=None):
+    """``out``'s crater boxes and scores are those `lunarnav detect` gives at --conf 0.2."""
+    from lunarnav_ml.eval.cli import load_predictor
+    from lunarnav_ml.geometry.boxrefine import BoxRefinedDetector, BoxRefiner
+    from lunarnav_ml.utils.images import read_rgb
+
+    detector = load_predictor(DEFAULT_WEIGHTS, 2, None, small_read=small_read)
+    want = BoxRefinedDetector(detector, BoxRefiner()).predict([read_rgb(root / "left.png")],
+                                                              0.2, 0.6)[0]
+    craters = want["labels"] == 1
+    assert [c["score"] for c in out["craters"]] == pytest.approx(want["scores"][craters].tolist())
+    assert np.allclose([c["box"] for c in out["craters"]], want["boxes"][craters], atol=1e-3)
+
+
 def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     """At --conf 0.2: the box refiner's quality rates this toy scene's crater low (its refined
     score is about 0.22, the network's 0.74), under the default 0.3 chosen on the renders."""
@@ -43,16 +57,7 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     assert DEFAULT_WEIGHTS.is_file()
     assert _run(root, "--conf", "0.2", "--out", str(tmp_path)) == 0
     out = json.loads((tmp_path / "craters3d.json").read_text())
-    # the crater boxes and scores `lunarnav detect` gives at the same threshold
-    from lunarnav_ml.eval.cli import load_predictor
-    from lunarnav_ml.geometry.boxrefine import BoxRefinedDetector, BoxRefiner
-    from lunarnav_ml.utils.images import read_rgb
-
-    want = BoxRefinedDetector(load_predictor(DEFAULT_WEIGHTS, 2, None), BoxRefiner()).predict(
-        [read_rgb(root / "left.png")], 0.2, 0.6)[0]
-    craters = want["labels"] == 1
-    assert [c["score"] for c in out["craters"]] == pytest.approx(want["scores"][craters].tolist())
-    assert np.allclose([c["box"] for c in out["craters"]], want["boxes"][craters], atol=1e-3)
+    _same_craters_as_detect(root, out)
     lifted = [c for c in out["craters"] if c["ok"]]
     assert lifted, out["craters"]
     best = max(lifted, key=lambda c: c["score"])
@@ -68,11 +73,25 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     assert best["lift"]["flank_rise_m"] > 0 and best["lift"]["rim_disparity_px"] > 0
     assert best["lift"]["n_rim"] >= 8 and 0 <= best["lift"]["crest_fraction"] <= 1
     assert out["min_flank_rise_px"] == 0.12  # the hidden-rim test read to scale, by default
+    assert out["small_read"] is None  # one read, by default
     assert cv2.imread(str(tmp_path / "overlay.jpg")).shape == (480, 640, 3)
     assert set(out["timing_ms"]) == {"detect", "box_refine", "stereo", "craters"}
     assert out["box_refiner"] == str(DEFAULT_BOX_REFINER)  # on by default
     assert all(v > 0 for v in out["timing_ms"].values())
     assert "in 3D (detect " in capsys.readouterr().out
+
+
+def test_a_second_read_of_the_small_boxes(pair, tmp_path):
+    """``--small-read``: the crater boxes are the wrapped detector's, refined as by default."""
+    root, sc = pair
+    assert _run(root, "--conf", "0.2", "--small-read", "640", "--out", str(tmp_path)) == 0
+    out = json.loads((tmp_path / "craters3d.json").read_text())
+    assert out["small_read"] == 640
+    from lunarnav_ml.eval.smallread import SmallBoxReadConfig
+
+    _same_craters_as_detect(root, out, SmallBoxReadConfig(640))
+    assert any(c["ok"] and abs(c["diameter_m"] - sc.crater.diameter) < 0.25 * sc.crater.diameter
+               for c in out["craters"])
 
 
 def test_an_onnx_model_runs_through_the_onboard_runtime(pair, onnx_path, tmp_path):
