@@ -70,3 +70,26 @@ def make_coco(root: Path, n_images: int = 8, size: int = 96, seed: int = 0,
     path.write_text(json.dumps({"images": images, "annotations": anns,
                                 "categories": CATEGORIES}))
     return path
+
+
+class FakeSidedDetector:
+    """A stand-in predictor at its own side 96 that records each side it runs at and raises at
+    ``fail_at``; subclasses give ``detect(images)``, the output at ``self.img_size``."""
+
+    strides = (8, 16, 32)
+    class_names = ("crater", "rock", "artifact")
+
+    def __init__(self, fail_at: int | None = None) -> None:
+        self.img_size, self.sides_run, self.fail_at = 96, [], fail_at
+
+    def set_img_size(self, side: int) -> None:
+        self.img_size = side
+
+    def predict(self, images, conf_thres=0.001, iou_thres=0.6, max_det=300):
+        self.sides_run.append(self.img_size)
+        if self.img_size == self.fail_at:
+            raise RuntimeError("boom")
+        return self.detect(images)
+
+    def detect(self, images):
+        raise NotImplementedError

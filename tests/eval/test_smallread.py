@@ -12,6 +12,7 @@ from lunarnav_ml.eval.cli import load_predictor
 from lunarnav_ml.eval.smallread import SmallBoxReadConfig, SmallBoxReadPredictor
 from lunarnav_ml.eval.tta import TTAConfig
 from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
+from tests.detector_fixtures import FakeSidedDetector
 
 
 def _pred(rows):
@@ -20,23 +21,11 @@ def _pred(rows):
             "labels": rows[:, 5].astype(np.int64)}
 
 
-class TwoSides:
+class TwoSides(FakeSidedDetector):
     """At its own side (96) a big crater box and a faint small one; at 192 the small one again,
     stronger and a pixel taller, a second small one, and a big box too."""
 
-    strides = (8, 16, 32)
-    class_names = ("crater", "rock", "artifact")
-
-    def __init__(self, fail_at=None):
-        self.img_size, self.sides_run, self.fail_at = 96, [], fail_at
-
-    def set_img_size(self, side):
-        self.img_size = side
-
-    def predict(self, images, conf_thres=0.001, iou_thres=0.6, max_det=300):
-        self.sides_run.append(self.img_size)
-        if self.img_size == self.fail_at:
-            raise RuntimeError("boom")
+    def detect(self, images):
         if self.img_size == 96:
             rows = [[0, 0, 50, 50, 0.8, 1], [10, 10, 14, 14, 0.3, 1]]
         else:

@@ -12,6 +12,7 @@ from lunarnav_ml.eval.cli import load_predictor
 from lunarnav_ml.eval.tta import TTAConfig, TTAPredictor, tta_sides
 from lunarnav_ml.training import cli as train_cli
 from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
+from tests.detector_fixtures import FakeSidedDetector
 
 
 def test_sides_round_to_the_stride_without_repeats():
@@ -29,22 +30,11 @@ def test_config_rejects_bad_values(kwargs, field):
         TTAConfig(**kwargs)
 
 
-class BrightSquare:
+class BrightSquare(FakeSidedDetector):
     """Finds the bright square of an image exactly; at its own side, on unmirrored images
     only (the square sits right of centre), it also reports a spurious box of class 2."""
 
-    strides = (8, 16, 32)
-
-    def __init__(self, fail_at=None):
-        self.img_size, self.sides_run, self.fail_at = 96, [], fail_at
-
-    def set_img_size(self, side):
-        self.img_size = side
-
-    def predict(self, images, conf_thres=0.001, iou_thres=0.6, max_det=300):
-        self.sides_run.append(self.img_size)
-        if self.img_size == self.fail_at:
-            raise RuntimeError("boom")
+    def detect(self, images):
         out = []
         for image in images:
             ys, xs = np.nonzero(image[..., 0] > 200)
