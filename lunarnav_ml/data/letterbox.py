@@ -41,15 +41,23 @@ def resize_long_side(image: np.ndarray, size: int) -> tuple[np.ndarray, float]:
     return cv2.resize(image, new, interpolation=interp), scale
 
 
-def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, LetterboxInfo]:
-    """Fit an image into a ``size`` x ``size`` square, centred, padded with gray.
+def letterbox(image: np.ndarray, size: int | tuple[int, int]
+              ) -> tuple[np.ndarray, LetterboxInfo]:
+    """Fit an image into a ``size`` x ``size`` square (or a ``(height, width)`` rectangle),
+    centred, padded with gray.
 
     Shape:
         - image: :math:`(H, W, 3)` uint8; Output: :math:`(size, size, 3)` uint8.
     """
-    resized, scale = resize_long_side(image, size)
-    h, w = resized.shape[:2]
-    pad_x, pad_y = (size - w) // 2, (size - h) // 2
-    out = np.full((size, size, 3), PAD_VALUE, dtype=np.uint8)
-    out[pad_y:pad_y + h, pad_x:pad_x + w] = resized
+    h, w = image.shape[:2]
+    out_h, out_w = size if isinstance(size, tuple) else (size, size)
+    scale = min(out_h / h, out_w / w)  # the longer side fills a square
+    if scale != 1.0:
+        interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+        image = cv2.resize(image, (max(1, round(w * scale)), max(1, round(h * scale))),
+                           interpolation=interp)
+    new_h, new_w = image.shape[:2]
+    pad_x, pad_y = (out_w - new_w) // 2, (out_h - new_h) // 2
+    out = np.full((out_h, out_w, 3), PAD_VALUE, dtype=np.uint8)
+    out[pad_y:pad_y + new_h, pad_x:pad_x + new_w] = image
     return out, LetterboxInfo(scale, float(pad_x), float(pad_y))

@@ -41,10 +41,14 @@ class SmallBoxReadConfig:
             stride, larger than the model's own side).
         below_px: a box of the second read is kept when it is under this many px high at the
             model's own side (its height in the frame x own side / the frame's longer side).
+        band: ``(top, bottom)``, fractions of the frame's height: the second read covers these
+            rows only, at the scale the whole frame would have had (a rectangular input, so
+            it costs about ``bottom - top`` of a whole second read); None: the whole frame.
     """
 
     side: int
     below_px: float = DEFAULT_BELOW_PX
+    band: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.side, bool) or not isinstance(self.side, int) or self.side <= 0:
@@ -52,10 +56,23 @@ class SmallBoxReadConfig:
         if not (np.isfinite(self.below_px) and self.below_px > 0):
             raise ConfigError(f"--small-read-below: expected a positive height in px, "
                               f"got {self.below_px}")
+        if self.band is not None:
+            band = tuple(float(v) for v in self.band)
+            if len(band) != 2 or not (0.0 <= band[0] < band[1] <= 1.0):  # NaN fails too
+                raise ConfigError(f"--small-read-band: expected TOP BOTTOM with 0 <= TOP < "
+                                  f"BOTTOM <= 1 (fractions of the frame's height), got "
+                                  f"{list(self.band)}")
+            object.__setattr__(self, "band", band)
 
     def describe(self) -> str:
         """One line for report titles."""
-        return f"boxes under {self.below_px:g} px high read again at {self.side} px"
+        rows = "" if self.band is None else f" (rows {self.band[0]:g}-{self.band[1]:g})"
+        return f"boxes under {self.below_px:g} px high read again at {self.side} px{rows}"
+
+
+def _up(px: float, stride: int) -> int:
+    """``px`` rounded up to a multiple of ``stride`` (at least one)."""
+    return max(stride, int(np.ceil(px / stride - 1e-9)) * stride)
 
 
 def _own_side(predictor: Any) -> int:
@@ -76,6 +93,8 @@ class SmallBoxReadPredictor:
     def __init__(self, predictor: Any, config: SmallBoxReadConfig) -> None:
         self.predictor, self.config = predictor, config
         self.base_side = _own_side(predictor)
+        self.stride = (max(predictor.strides) if hasattr(predictor, "strides")
+                       else int(predictor.metadata.max_stride))
         if config.side <= self.base_side:
             raise ConfigError(f"--small-read: {config.side} px is not larger than the model's "
                               f"own side, {self.base_side} px")
@@ -102,12 +121,32 @@ class SmallBoxReadPredictor:
             return []
         own = self.predictor.predict(images, conf_thres, iou_thres, max_det)
         try:
-            self.predictor.set_img_size(self.config.side)
-            larger = self.predictor.predict(images, conf_thres, iou_thres, max_det)
+            if self.config.band is None:
+                self.predictor.set_img_size(self.config.side)
+                larger = self.predictor.predict(images, conf_thres, iou_thres, max_det)
+            else:
+                larger = [self.read_band(image, conf_thres, iou_thres, max_det)
+                          for image in images]
         finally:
             self.predictor.set_img_size(self.base_side)
         return [self.merge(a, b, image.shape, iou_thres, max_det)
                 for a, b, image in zip(own, larger, images, strict=True)]
+
+    def read_band(self, image: np.ndarray, conf_thres: float, iou_thres: float, max_det: int
+                  ) -> dict[str, np.ndarray]:
+        """The second read of one frame's band of rows, at the scale ``side`` gives the whole
+        frame, through an input just large enough for the band; boxes in frame pixels."""
+        h, w = image.shape[:2]
+        top, bottom = self.config.band
+        y0, y1 = int(np.floor(top * h)), max(int(np.ceil(bottom * h)), int(np.floor(top * h)) + 1)
+        scale = self.config.side / max(h, w)
+        self.predictor.set_img_size((_up((y1 - y0) * scale, self.stride),
+                                     _up(w * scale, self.stride)))
+        (pred,) = self.predictor.predict([np.ascontiguousarray(image[y0:y1])], conf_thres,
+                                         iou_thres, max_det)
+        boxes = np.asarray(pred["boxes"], np.float32).reshape(-1, 4).copy()
+        boxes[:, [1, 3]] += y0
+        return {**pred, "boxes": boxes}
 
     def merge(self, own: dict[str, np.ndarray], larger: dict[str, np.ndarray],
               shape: tuple[int, ...], iou_thres: float = 0.6, max_det: int = 300
@@ -137,6 +176,12 @@ def add_small_read_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--small-read-below", type=float, default=DEFAULT_BELOW_PX, metavar="PX",
                         help="(--small-read) keep the second read's boxes under this many px "
                              "high at the model's own side; default %(default)s")
+    parser.add_argument("--small-read-band", type=float, nargs=2, default=None,
+                        metavar=("TOP", "BOTTOM"),
+                        help="(--small-read) read again only these rows, as fractions of the "
+                             "frame's height (the far ground below the horizon, where the small "
+                             "craters are; 0.27 0.56 for the paper's camera): about BOTTOM - TOP "
+                             "of the second read's cost; default the whole frame")
 
 
 def small_read_config(args: argparse.Namespace) -> SmallBoxReadConfig | None:
@@ -145,4 +190,6 @@ def small_read_config(args: argparse.Namespace) -> SmallBoxReadConfig | None:
     side = getattr(args, "small_read", None)
     if side is None:
         return None
-    return SmallBoxReadConfig(side=side, below_px=args.small_read_below)
+    band = getattr(args, "small_read_band", None)
+    return SmallBoxReadConfig(side=side, below_px=args.small_read_below,
+                              band=None if band is None else tuple(band))

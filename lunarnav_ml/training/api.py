@@ -35,16 +35,19 @@ class Detector:
         self.class_names = list(class_names)
         self.preset = preset
 
-    def set_img_size(self, img_size: int) -> None:
-        """Run at another square input side (the network is fully convolutional).
+    def set_img_size(self, img_size: int | tuple[int, int]) -> None:
+        """Run at another square input side, or an ``(height, width)`` input (the network is
+        fully convolutional).
 
         Raises:
             ConfigError: not a positive multiple of the largest stride.
         """
         step = max(self.strides)
-        if isinstance(img_size, bool) or not isinstance(img_size, int) or img_size <= 0 \
-                or img_size % step:
-            raise ConfigError(f"img_size: expected a positive multiple of {step}, got {img_size!r}")
+        sides = img_size if isinstance(img_size, tuple) and len(img_size) == 2 else (img_size,)
+        if any(isinstance(s, bool) or not isinstance(s, int) or s <= 0 or s % step
+               for s in sides):
+            raise ConfigError(f"img_size: expected a positive multiple of {step} or a (height, "
+                              f"width) pair of them, got {img_size!r}")
         self.img_size = img_size
 
     @property
@@ -70,7 +73,8 @@ class Detector:
         """Letterbox RGB uint8 images into one float batch.
 
         Shape:
-            - Output: :math:`(B, 3, S, S)` float in [0, 1], ``S = img_size``.
+            - Output: :math:`(B, 3, S, S)` float in [0, 1], ``S = img_size`` (or
+              :math:`(B, 3, H, W)` for an ``(H, W)`` img_size).
         """
         squares, infos = [], []
         for i, image in enumerate(images):

@@ -72,6 +72,11 @@ def test_letterbox_round_trip():
     box = np.array([[10.0, 5.0, 40.0, 45.0]])
     inside = box * info.scale + [info.pad_x, info.pad_y, info.pad_x, info.pad_y]
     np.testing.assert_allclose(info.to_original(inside, 100, 50), box, atol=1e-4)
+    # a (height, width) rectangle: the largest scale that fits, the rest padded
+    rect, info = letterbox(np.full((50, 100, 3), 9, np.uint8), (32, 96))
+    assert rect.shape == (32, 96, 3) and info.scale == pytest.approx(0.64)
+    assert (info.pad_x, info.pad_y) == (16.0, 0.0) and rect[:, 16:80].max() == 9
+    assert (rect[:, :16] == 114).all() and (rect[:, 80:] == 114).all()
 
 
 @pytest.mark.parametrize("augment, mosaic", [(False, 0.0), (True, 0.0), (True, 1.0)])

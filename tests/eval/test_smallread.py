@@ -63,12 +63,50 @@ def test_the_side_is_restored_when_the_second_read_fails():
     assert fake.img_size == 96
 
 
+class BrightSquareInCrop(FakeSidedDetector):
+    """Finds the bright square of whatever it is given, in that image's pixels."""
+
+    def detect(self, images):
+        out = []
+        for image in images:
+            ys, xs = np.nonzero(image[..., 0] > 200)
+            out.append(_pred([[xs.min(), ys.min(), xs.max() + 1, ys.max() + 1, 0.9, 1]]))
+        return out
+
+
+def test_a_band_of_rows_is_read_at_the_whole_frames_scale_and_mapped_back():
+    fake = BrightSquareInCrop()
+    config = SmallBoxReadConfig(side=192, below_px=30, band=(0.1, 0.6))
+    assert config.describe() == "boxes under 30 px high read again at 192 px (rows 0.1-0.6)"
+    reader = SmallBoxReadPredictor(fake, config)
+    image = np.zeros((60, 100, 3), np.uint8)
+    image[10:30, 60:90] = 255
+    (pred,) = reader.predict([image])
+    # rows 6-36 at 1.92 px a pixel: 57.6 -> 64 rows, 192 columns; then back at its own side
+    assert fake.sides_run == [96, (64, 192)] and fake.img_size == 96
+    np.testing.assert_allclose(pred["boxes"], [[60, 10, 90, 30]])  # one box: NMS took the repeat
+    fake.fail_at = (64, 192)
+    with pytest.raises(RuntimeError, match="boom"):
+        reader.predict([image])
+    assert fake.img_size == 96
+
+
 @pytest.mark.parametrize("kwargs, field", [({"side": 0}, "--small-read"),
                                            ({"side": 640.0}, "--small-read"),
                                            ({"side": True}, "--small-read"),
                                            ({"side": 640, "below_px": 0.0}, "--small-read-below"),
                                            ({"side": 640, "below_px": math.nan},
-                                            "--small-read-below")])
+                                            "--small-read-below"),
+                                           ({"side": 640, "band": (0.5, 0.5)},
+                                            "--small-read-band"),
+                                           ({"side": 640, "band": (-0.1, 0.5)},
+                                            "--small-read-band"),
+                                           ({"side": 640, "band": (0.2, 1.5)},
+                                            "--small-read-band"),
+                                           ({"side": 640, "band": (math.nan, 0.5)},
+                                            "--small-read-band"),
+                                           ({"side": 640, "band": (0.1,)},
+                                            "--small-read-band")])
 def test_config_rejects_bad_values(kwargs, field):
     with pytest.raises(ConfigError, match=field):
         SmallBoxReadConfig(**kwargs)
@@ -98,8 +136,14 @@ def test_real_models_with_a_second_read(frame, onnx_path, onnx_static_path):
     (own,) = predictor.predictor.predict([frame])
     assert len(pred["scores"]) > 0 and np.all(np.diff(pred["scores"]) <= 0)
     assert not np.array_equal(pred["boxes"], own["boxes"])  # the second read added boxes
+    band = SmallBoxReadConfig(320, band=(0.5, 1.0))  # the two small craters' rows
+    (banded,) = load_predictor(DEFAULT_WEIGHTS, 1, 160, small_read=band).predict([frame])
+    assert len(banded["scores"]) > 0 and banded["boxes"][:, 3].max() <= frame.shape[0]
     (pred,) = load_predictor(onnx_path, 1, None, small_read=SmallBoxReadConfig(192)).predict(
         [frame])
+    assert pred["boxes"].shape == (len(pred["scores"]), 4)
+    (pred,) = load_predictor(onnx_path, 1, None, small_read=SmallBoxReadConfig(
+        192, band=(0.25, 0.75))).predict([frame])  # a rectangular input through onnxruntime
     assert pred["boxes"].shape == (len(pred["scores"]), 4)
     with pytest.raises(ConfigError, match="fixed input"):
         load_predictor(onnx_static_path, 1, None, small_read=SmallBoxReadConfig(192))

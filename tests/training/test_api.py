@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from lunarnav_ml.errors import InputError
+from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.training.api import load_detector
 from lunarnav_ml.training.checkpoint import save_slim
 
@@ -33,6 +33,13 @@ def test_load_detector_and_predict(trained, tiny_coco):
         assert n > 0 and pred["boxes"].shape == (n, 4) and pred["labels"].shape == (n,)
         assert pred["boxes"][:, 2].max() <= image.shape[1] and pred["boxes"].min() >= 0
         assert set(pred["labels"].tolist()) <= {1, 2, 3}
+    det.set_img_size((32, 96))  # a rectangular input: boxes still in the image's pixels
+    (wide,) = det.predict([np.full((40, 120, 3), 120, np.uint8)], conf_thres=0.0)
+    assert len(wide["scores"]) and wide["boxes"][:, 2].max() <= 120 and wide["boxes"].min() >= 0
+    for bad in ((32, 90), (0, 64), 65, (32, 64, 64), True):
+        with pytest.raises(ConfigError, match="img_size"):
+            det.set_img_size(bad)
+    det.set_img_size(64)
     results = det.to_coco_results(preds, [5, 6])
     assert {r["image_id"] for r in results} == {5, 6}
     assert set(results[0]) == {"image_id", "category_id", "bbox", "score"}
