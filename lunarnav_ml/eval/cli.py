@@ -61,6 +61,7 @@ def add_box_rescorer_arguments(p: argparse.ArgumentParser) -> None:
                    help="score each refined crater box by this rescorer from `lunarnav "
                         "train-box-rescorer` (no file: the shipped one, fitted on the shipped "
                         "small.pt with the shipped box refiner and refused for other models; "
+                        "with --small-read 640 the shipped one fitted on that read's boxes; "
                         "default off; docs/geometry.md)")
     p.add_argument("--no-box-rescorer", dest="box_rescorer", action="store_const", const=None,
                    help="keep sqrt(score x quality) as the crater score (the default)")
@@ -71,13 +72,23 @@ def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refine
     """The :class:`~lunarnav_ml.geometry.boxrescore.BoxRescorer` of ``--box-rescorer`` for the
     model file ``model`` and the box refiner ``refiner`` (None when switched off).
 
+    With ``--small-read`` the shipped file is the one fitted on the boxes of that read
+    (``box_rescorer_small_read.onnx``): the boxes the second read adds change what a box's
+    neighbours say.
+
     Raises:
         InputError: a rescorer without a box refiner (``--no-box-refiner``); the shipped file
-            asked for with a model or box refiner other than those it was fitted with. (A
-            refiner without a quality output is refused by the
-            :class:`~lunarnav_ml.geometry.boxrefine.BoxRefinedDetector` it goes into.)
+            asked for with a model or box refiner other than those it was fitted with, or with
+            a second read other than the one it was fitted on. (A refiner without a quality
+            output is refused by the :class:`~lunarnav_ml.geometry.boxrefine.BoxRefinedDetector`
+            it goes into.)
     """
-    from lunarnav_ml.geometry.boxrescore import BoxRescorer
+    from lunarnav_ml.eval.smallread import DEFAULT_BELOW_PX
+    from lunarnav_ml.geometry.boxrescore import (
+        SMALL_READ_BOX_RESCORER,
+        SMALL_READ_SIDE,
+        BoxRescorer,
+    )
 
     choice = getattr(args, "box_rescorer", None)
     if choice is None:
@@ -85,7 +96,16 @@ def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refine
     if refiner is None:
         raise InputError("--box-rescorer reads the box refiner's quality output: drop "
                          "--no-box-refiner (the shipped box refiner has one)")
-    rescorer = _open_tool(BoxRescorer, choice, args.threads)
+    small_read = small_read_config(args)
+    if choice == SHIPPED and small_read is not None:
+        if small_read.side != SMALL_READ_SIDE or small_read.below_px != DEFAULT_BELOW_PX:
+            raise InputError(f"{SMALL_READ_BOX_RESCORER}: fitted on the boxes of --small-read "
+                             f"{SMALL_READ_SIDE} --small-read-below {DEFAULT_BELOW_PX:g}, not "
+                             f"{small_read.side} / {small_read.below_px:g}; fit one for that "
+                             f"read with `lunarnav train-box-rescorer` and name it")
+        rescorer = BoxRescorer(SMALL_READ_BOX_RESCORER, threads=args.threads)
+    else:
+        rescorer = _open_tool(BoxRescorer, choice, args.threads)
     if choice == SHIPPED and (model is None or not rescorer.fitted_for(model, refiner.path)):
         fitted = rescorer.fitted_with
         raise InputError(f"{rescorer.path}: fitted on the scores of "

@@ -51,10 +51,15 @@ FEATURES = (
     "shift_max", "shift_height",  # refinement move: largest |x, y, w, h| change, |h| change
 )
 DEFAULT_BOX_RESCORER = Path(__file__).resolve().parents[1] / "weights" / "box_rescorer.onnx"
+# fitted on the boxes of `--small-read 640` (the default cut), for the paper's 1024 px frames
+SMALL_READ_BOX_RESCORER = DEFAULT_BOX_RESCORER.with_name("box_rescorer_small_read.onnx")
+SMALL_READ_SIDE = 640
 
 
 def rescored_by(path: str | os.PathLike | None) -> str:
     """The report-title phrase for crater scores from the rescorer ``path`` (None: shipped)."""
+    if path is not None and Path(path).resolve() == SMALL_READ_BOX_RESCORER:
+        return "scored by the shipped box rescorer for --small-read"
     shipped = path is None or Path(path).resolve() == DEFAULT_BOX_RESCORER
     return "scored by " + ("the shipped box rescorer" if shipped else str(path))
 

@@ -17,9 +17,11 @@ from lunarnav_ml.geometry.boxrescore import (
     FEATURES,
     NEIGHBOUR_FLOOR,
     RAW_FLOOR,
+    SMALL_READ_BOX_RESCORER,
     BoxRescorer,
     file_digest,
     rescore_features,
+    rescored_by,
 )
 from lunarnav_ml.training.box_refiner import BoxRefinerNet, export_box_refiner
 from lunarnav_ml.training.box_rescorer import BoxRescorerConfig, export_box_rescorer, fit
@@ -214,6 +216,17 @@ def test_cli_fit_and_the_default_choice(labelled_set, tmp_path, capsys):
 
     assert shipped.fitted_for(DEFAULT_WEIGHTS, DEFAULT_BOX_REFINER)
     assert load_box_rescorer(args, DEFAULT_WEIGHTS, BoxRefiner()).path == DEFAULT_BOX_RESCORER
+    # with --small-read the shipped file is the one fitted on that read's boxes
+    args.small_read, args.small_read_below, args.small_read_band = 640, 15.0, (0.27, 0.56)
+    assert BoxRescorer(SMALL_READ_BOX_RESCORER).fitted_for(DEFAULT_WEIGHTS, DEFAULT_BOX_REFINER)
+    assert load_box_rescorer(args, DEFAULT_WEIGHTS, BoxRefiner()).path == SMALL_READ_BOX_RESCORER
+    assert rescored_by(SMALL_READ_BOX_RESCORER).endswith("shipped box rescorer for --small-read")
+    for side, below in ((768, 15.0), (640, 9.0)):  # another read: refused, not misapplied
+        args.small_read, args.small_read_below = side, below
+        with pytest.raises(InputError, match="fitted on the boxes of --small-read 640"):
+            load_box_rescorer(args, DEFAULT_WEIGHTS, BoxRefiner())
+    args.box_rescorer = str(out)  # a named file with any read: the user's choice
+    assert load_box_rescorer(args, tmp_path / "other.pt", refiner).path == out
 
 
 def test_cli_errors_are_one_line(labelled_set, tmp_path, capsys):
