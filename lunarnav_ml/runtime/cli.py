@@ -15,14 +15,18 @@ import numpy as np
 from lunarnav_ml.errors import ConfigError, InputError
 from lunarnav_ml.eval.cli import (
     add_box_refiner_arguments,
+    add_box_rescorer_arguments,
     add_lifter_arguments,
     add_refiner_arguments,
     add_small_read_arguments,
     lifter_overrides,
     load_box_refiner,
+    load_box_rescorer,
     load_refiner,
 )
 from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
+
+DEFAULT_CONF = 0.3  # chosen on the 300 validation renders for sqrt(score x quality)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -42,13 +46,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--weights", type=Path, default=None,
                    help="exported .onnx model (torch-free runtime) or a checkpoint (.pt, "
                         f".ckpt); default {DEFAULT_WEIGHTS}")
-    p.add_argument("--conf", type=float, default=0.3,
+    p.add_argument("--conf", type=float, default=None,
                    help="crater score threshold; with the default box refiner it holds for the "
                         "refined scores sqrt(score x quality), as in `lunarnav detect` and "
                         "`lunarnav eval` (default 0.3: on the 300 validation renders fewer false "
                         "alarms and more craters than the detector's own scores at 0.25 gave, "
                         "2.41 against 3.52 a frame, Pd 0.571 against 0.549); with "
-                        "--no-box-refiner, for the detector's scores")
+                        "--no-box-refiner, for the detector's scores; with --box-rescorer, for "
+                        "its probabilities, and then it must be given (0.79 held 0.2 false "
+                        "alarms a frame on the paper-mono validation quarter with "
+                        "--small-read 640)")
     p.add_argument("--iou", type=float, default=0.6, help="NMS IoU threshold")
     p.add_argument("--img-size", type=int, default=None,
                    help="network input side, px (default the model's own)")
@@ -63,6 +70,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_small_read_arguments(p)
     add_refiner_arguments(p)
     add_box_refiner_arguments(p)
+    add_box_rescorer_arguments(p)
     add_lifter_arguments(p)
     p.add_argument("--out", type=Path, default=Path("outputs/localize"), help="output folder")
     p.set_defaults(func=run_localize)
@@ -91,6 +99,12 @@ def run_localize(args: argparse.Namespace) -> int:
     from lunarnav_ml.utils import atomic
     from lunarnav_ml.utils.images import read_rgb
 
+    if args.conf is None:
+        if getattr(args, "box_rescorer", None) is not None:
+            raise ConfigError("--box-rescorer: give --conf, a threshold for the rescorer's "
+                              "probabilities (the default 0.3 was chosen for sqrt(score x "
+                              "quality))")
+        args.conf = DEFAULT_CONF
     for name in ("conf", "iou"):
         if not 0.0 <= getattr(args, name) <= 1.0:
             raise ConfigError(f"--{name} must lie in [0, 1], got {getattr(args, name)}")
@@ -108,6 +122,7 @@ def run_localize(args: argparse.Namespace) -> int:
     weights = args.weights or DEFAULT_WEIGHTS
     refiner = load_refiner(args)
     box_refiner = load_box_refiner(args)
+    box_rescorer = load_box_rescorer(args, weights, box_refiner)
     lifter = lifter_overrides(args, default_lifter(refiner))
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
@@ -116,7 +131,8 @@ def run_localize(args: argparse.Namespace) -> int:
     localizer = StereoCraterLocalizer(detector, rig,
                                       conf_thres=args.conf, iou_thres=args.iou, stereo=stereo,
                                       lift_from=args.lift_from, refiner=refiner,
-                                      box_refiner=box_refiner, lifter=lifter)
+                                      box_refiner=box_refiner, box_rescorer=box_rescorer,
+                                      lifter=lifter)
     craters = localizer(left, right)
     record = {"left": str(args.left), "right": str(args.right), "camera": camera,
               "weights": str(weights), "conf": args.conf, "iou": args.iou,
@@ -124,6 +140,7 @@ def run_localize(args: argparse.Namespace) -> int:
               "lift_from": args.lift_from, "min_flank_rise_px": lifter.min_flank_rise_px,
               "refiner": None if refiner is None else str(refiner.path),
               "box_refiner": None if box_refiner is None else str(box_refiner.path),
+              "box_rescorer": None if box_rescorer is None else str(box_rescorer.path),
               "sgbm": {"mode": stereo.mode, "num_disparities": stereo.num_disparities},
               "frame": "rover: x forward, y left, z up, m",
               "timing_ms": {k: round(v, 1) for k, v in localizer.timing_ms.items()},

@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -110,13 +110,16 @@ class StereoCraterLocalizer:
             NMS runs again over the refined boxes
             (:class:`~lunarnav_ml.geometry.boxrefine.BoxRefinedDetector`, the path ``lunarnav
             eval`` reads its figures on).
+        box_rescorer: scores each refined crater box by a second-stage
+            :class:`~lunarnav_ml.geometry.boxrescore.BoxRescorer` instead (needs a box refiner
+            with a quality output); ``conf_thres`` then holds for its probabilities.
     """
 
     def __init__(self, detector: BoxDetector, rig: StereoRig, *, conf_thres: float = 0.25,
                  iou_thres: float = 0.6, stereo: SGBMStereo | None = None,
                  fitter: EllipseFitter | None = None, lifter: LifterConfig | None = None,
                  lift_from: str = "box", refiner: DisparityRefiner | None = None,
-                 box_refiner: BoxRefiner | None = None) -> None:
+                 box_refiner: BoxRefiner | None = None, box_rescorer: Any = None) -> None:
         if lift_from not in LIFT_SOURCES:
             raise ConfigError(f"lift_from: expected one of {LIFT_SOURCES}, got {lift_from!r}")
         names = list(detector.class_names)
@@ -132,11 +135,15 @@ class StereoCraterLocalizer:
         self.refiner = refiner
         self.box_refiner = box_refiner
         self.scorer = None  # refines and rescores the crater boxes: a refiner's quality output
+        if box_rescorer is not None and not getattr(box_refiner, "has_quality", False):
+            raise ConfigError("box_rescorer: reads the box refiner's quality output, and "
+                              + ("there is no box refiner" if box_refiner is None
+                                 else f"{box_refiner.path} has none"))
         if getattr(box_refiner, "has_quality", False):
             if self.crater_label != CRATER_LABEL:
                 raise ConfigError(f"detector classes {names}: the box refiner reads crater boxes "
                                   f"as label {CRATER_LABEL}, these are label {self.crater_label}")
-            self.scorer = BoxRefinedDetector(detector, box_refiner)
+            self.scorer = BoxRefinedDetector(detector, box_refiner, box_rescorer)
         self.timing_ms: dict[str, float] = {}  # the last frame's, see __call__
 
     def detect_boxes(self, left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -191,3 +191,37 @@ def test_a_quality_refiner_needs_craters_as_label_one(scene):
     det.class_names = ("rock", "crater", "artifact")
     with pytest.raises(ConfigError, match="label 1"):
         StereoCraterLocalizer(det, scene.rig, box_refiner=QualityRefiner(0.5))
+
+
+class ConstantRescorer:
+    """A second-stage scorer that rates every crater box it is given at ``p``."""
+
+    path = "rescorer.onnx"
+
+    def __init__(self, p):
+        self.p = p
+
+    def __call__(self, features):
+        return np.full(len(features), self.p, np.float32)
+
+
+def test_a_box_rescorer_scores_the_crater_boxes_and_needs_a_quality_refiner(scene):
+    """With a rescorer ``conf_thres`` holds for its probabilities; the network runs at the
+    rescorer's floor, as in ``lunarnav detect``."""
+    from lunarnav_ml.geometry.boxrescore import RAW_FLOOR
+
+    det = AskedDetector(scene.box)
+    loc = StereoCraterLocalizer(det, scene.rig, conf_thres=0.5, box_refiner=QualityRefiner(0.4),
+                                box_rescorer=ConstantRescorer(0.8))
+    craters = loc(rgb(scene.left), rgb(scene.right))
+    assert det.asked == pytest.approx(min(0.25, RAW_FLOOR))
+    assert len(craters) == 1 and craters[0].score == pytest.approx(0.8)  # not sqrt(0.9 x 0.4)
+    low = StereoCraterLocalizer(AskedDetector(scene.box), scene.rig, conf_thres=0.5,
+                                box_refiner=QualityRefiner(0.4), box_rescorer=ConstantRescorer(0.3))
+    assert low(rgb(scene.left), rgb(scene.right)) == []
+    for refiner in (None, QualityRefiner(0.4)):
+        if refiner is not None:
+            refiner.has_quality = False
+        with pytest.raises(ConfigError, match="quality output"):
+            StereoCraterLocalizer(TruthDetector(scene.box), scene.rig, box_refiner=refiner,
+                                  box_rescorer=ConstantRescorer(0.8))

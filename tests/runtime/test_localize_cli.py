@@ -36,15 +36,15 @@ def _run(root, *extra):
                  str(root / "camera.json"), *extra])
 
 
-def _same_craters_as_detect(root, out, small_read=None):
-    """``out``'s crater boxes and scores are those `lunarnav detect` gives at --conf 0.2."""
+def _same_craters_as_detect(root, out, small_read=None, rescorer=None, conf=0.2):
+    """``out``'s crater boxes and scores are those `lunarnav detect` gives at ``conf``."""
     from lunarnav_ml.eval.cli import load_predictor
     from lunarnav_ml.geometry.boxrefine import BoxRefinedDetector, BoxRefiner
     from lunarnav_ml.utils.images import read_rgb
 
     detector = load_predictor(DEFAULT_WEIGHTS, 2, None, small_read=small_read)
-    want = BoxRefinedDetector(detector, BoxRefiner()).predict([read_rgb(root / "left.png")],
-                                                              0.2, 0.6)[0]
+    want = BoxRefinedDetector(detector, BoxRefiner(), rescorer).predict(
+        [read_rgb(root / "left.png")], conf, 0.6)[0]
     craters = want["labels"] == 1
     assert [c["score"] for c in out["craters"]] == pytest.approx(want["scores"][craters].tolist())
     assert np.allclose([c["box"] for c in out["craters"]], want["boxes"][craters], atol=1e-3)
@@ -73,7 +73,7 @@ def test_the_shipped_model_puts_the_crater_where_it_is(pair, tmp_path, capsys):
     assert best["lift"]["flank_rise_m"] > 0 and best["lift"]["rim_disparity_px"] > 0
     assert best["lift"]["n_rim"] >= 8 and 0 <= best["lift"]["crest_fraction"] <= 1
     assert out["min_flank_rise_px"] == 0.12  # the hidden-rim test read to scale, by default
-    assert out["small_read"] is None  # one read, by default
+    assert out["small_read"] is None and out["box_rescorer"] is None  # by default
     assert cv2.imread(str(tmp_path / "overlay.jpg")).shape == (480, 640, 3)
     assert set(out["timing_ms"]) == {"detect", "box_refine", "stereo", "craters"}
     assert out["box_refiner"] == str(DEFAULT_BOX_REFINER)  # on by default
@@ -92,6 +92,23 @@ def test_a_second_read_of_the_small_boxes(pair, tmp_path):
     _same_craters_as_detect(root, out, SmallBoxReadConfig(640))
     assert any(c["ok"] and abs(c["diameter_m"] - sc.crater.diameter) < 0.25 * sc.crater.diameter
                for c in out["craters"])
+
+
+def test_the_box_rescorer_needs_its_own_threshold(pair, tmp_path, capsys):
+    root, _ = pair
+    assert _run(root, "--box-rescorer", "--out", str(tmp_path / "a")) == 2
+    assert "--box-rescorer: give --conf" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
+    assert _run(root, "--box-rescorer", "--conf", "0.05", "--out", str(tmp_path / "b")) == 0
+    out = json.loads((tmp_path / "b" / "craters3d.json").read_text())
+    from lunarnav_ml.geometry.boxrescore import DEFAULT_BOX_RESCORER, BoxRescorer
+
+    assert out["box_rescorer"] == str(DEFAULT_BOX_RESCORER) and out["conf"] == 0.05
+    _same_craters_as_detect(root, out, rescorer=BoxRescorer(), conf=0.05)
+    assert out["craters"], "the toy crater scores above 0.05 with the rescorer"
+    assert _run(root, "--box-rescorer", "--conf", "0.05", "--no-box-refiner", "--out",
+                str(tmp_path / "c")) == 2
+    assert "--no-box-refiner" in capsys.readouterr().err
 
 
 def test_an_onnx_model_runs_through_the_onboard_runtime(pair, onnx_path, tmp_path):
