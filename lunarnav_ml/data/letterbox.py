@@ -32,13 +32,18 @@ def resize_long_side(image: np.ndarray, size: int) -> tuple[np.ndarray, float]:
     Shape:
         - image: :math:`(H, W, 3)`; Output: :math:`(H', W', 3)` with ``max(H', W') = size``.
     """
-    h, w = image.shape[:2]
-    scale = size / max(h, w)
+    scale = size / max(image.shape[:2])
+    return _resize(image, scale), scale
+
+
+def _resize(image: np.ndarray, scale: float) -> np.ndarray:
+    """``image`` scaled by ``scale`` (area interpolation when shrinking; as it is at 1)."""
     if scale == 1.0:
-        return image, scale
+        return image
+    h, w = image.shape[:2]
     interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
-    new = (max(1, round(w * scale)), max(1, round(h * scale)))
-    return cv2.resize(image, new, interpolation=interp), scale
+    return cv2.resize(image, (max(1, round(w * scale)), max(1, round(h * scale))),
+                      interpolation=interp)
 
 
 def letterbox(image: np.ndarray, size: int | tuple[int, int]
@@ -49,13 +54,9 @@ def letterbox(image: np.ndarray, size: int | tuple[int, int]
     Shape:
         - image: :math:`(H, W, 3)` uint8; Output: :math:`(size, size, 3)` uint8.
     """
-    h, w = image.shape[:2]
     out_h, out_w = size if isinstance(size, tuple) else (size, size)
-    scale = min(out_h / h, out_w / w)  # the longer side fills a square
-    if scale != 1.0:
-        interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
-        image = cv2.resize(image, (max(1, round(w * scale)), max(1, round(h * scale))),
-                           interpolation=interp)
+    scale = min(out_h / image.shape[0], out_w / image.shape[1])  # a square: the longer side
+    image = _resize(image, scale)
     new_h, new_w = image.shape[:2]
     pad_x, pad_y = (out_w - new_w) // 2, (out_h - new_h) // 2
     out = np.full((out_h, out_w, 3), PAD_VALUE, dtype=np.uint8)

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from lunarnav_ml.errors import ConfigError
+from lunarnav_ml.eval.tta import max_stride, square_side
 from lunarnav_ml.runtime.nms import batched_nms
 
 DEFAULT_BELOW_PX = 15.0
@@ -82,16 +83,6 @@ def _up(px: float, stride: int) -> int:
     return max(stride, int(np.ceil(px / stride - 1e-9)) * stride)
 
 
-def _own_side(predictor: Any) -> int:
-    size = predictor.img_size
-    if isinstance(size, tuple | list):
-        if size[0] != size[1]:
-            raise ConfigError(f"--small-read: needs a square network input, the model runs at "
-                              f"{size}")
-        size = size[0]
-    return int(size)
-
-
 class SmallBoxReadPredictor:
     """Wraps a predictor with ``img_size`` and ``set_img_size(side)`` (the torch ``Detector``,
     an onnxruntime ``OnnxDetector`` exported with a dynamic input); ``predict`` has the wrapped
@@ -99,9 +90,8 @@ class SmallBoxReadPredictor:
 
     def __init__(self, predictor: Any, config: SmallBoxReadConfig) -> None:
         self.predictor, self.config = predictor, config
-        self.base_side = _own_side(predictor)
-        self.stride = (max(predictor.strides) if hasattr(predictor, "strides")
-                       else int(predictor.metadata.max_stride))
+        self.base_side = square_side(predictor, "--small-read")
+        self.stride = max_stride(predictor)
         if config.side <= self.base_side:
             raise ConfigError(f"--small-read: {config.side} px is not larger than the model's "
                               f"own side, {self.base_side} px")

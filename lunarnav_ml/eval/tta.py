@@ -65,13 +65,23 @@ def tta_sides(base: int, scales: Sequence[float], stride: int) -> list[int]:
     return sides
 
 
-def _square_side(predictor: Any) -> int:
+def square_side(predictor: Any, option: str = "tta") -> int:
+    """The predictor's square network input side; ``ConfigError`` naming ``option`` (the
+    wrapper that needs it) for a rectangular one."""
     size = predictor.img_size
     if isinstance(size, tuple | list):
         if size[0] != size[1]:
-            raise ConfigError(f"tta: needs a square network input, the model runs at {size}")
+            raise ConfigError(f"{option}: needs a square network input, the model runs at "
+                              f"{size}")
         size = size[0]
     return int(size)
+
+
+def max_stride(predictor: Any) -> int:
+    """The largest stride of a torch ``Detector`` (``strides``) or an ``OnnxDetector``
+    (``metadata.max_stride``): what every input side must be a multiple of."""
+    return (max(predictor.strides) if hasattr(predictor, "strides")
+            else int(predictor.metadata.max_stride))
 
 
 class TTAPredictor:
@@ -82,10 +92,8 @@ class TTAPredictor:
     def __init__(self, predictor: Any, config: TTAConfig = TTAConfig()) -> None:
         self.predictor = predictor
         self.config = config
-        self.base_side = _square_side(predictor)
-        stride = (max(predictor.strides) if hasattr(predictor, "strides")
-                  else int(predictor.metadata.max_stride))
-        self.sides = tta_sides(self.base_side, config.scales, stride)
+        self.base_side = square_side(predictor)
+        self.sides = tta_sides(self.base_side, config.scales, max_stride(predictor))
         try:  # a model that cannot run at a side says so now, not halfway through a set
             for side in self.sides:
                 predictor.set_img_size(side)
