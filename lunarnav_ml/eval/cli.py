@@ -83,12 +83,7 @@ def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refine
             output is refused by the :class:`~lunarnav_ml.geometry.boxrefine.BoxRefinedDetector`
             it goes into.)
     """
-    from lunarnav_ml.eval.smallread import DEFAULT_BELOW_PX
-    from lunarnav_ml.geometry.boxrescore import (
-        SMALL_READ_BOX_RESCORER,
-        SMALL_READ_SIDE,
-        BoxRescorer,
-    )
+    from lunarnav_ml.geometry.boxrescore import SMALL_READ_BOX_RESCORER, BoxRescorer
 
     choice = getattr(args, "box_rescorer", None)
     if choice is None:
@@ -97,23 +92,26 @@ def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refine
         raise InputError("--box-rescorer reads the box refiner's quality output: drop "
                          "--no-box-refiner (the shipped box refiner has one)")
     small_read = small_read_config(args)
-    if choice == SHIPPED and small_read is not None:
-        if small_read.side != SMALL_READ_SIDE or small_read.below_px != DEFAULT_BELOW_PX:
-            raise InputError(f"{SMALL_READ_BOX_RESCORER}: fitted on the boxes of --small-read "
-                             f"{SMALL_READ_SIDE} --small-read-below {DEFAULT_BELOW_PX:g}, not "
-                             f"{small_read.side} / {small_read.below_px:g}; fit one for that "
-                             f"read with `lunarnav train-box-rescorer` and name it")
-        rescorer = BoxRescorer(SMALL_READ_BOX_RESCORER, threads=args.threads)
-    else:
-        rescorer = _open_tool(BoxRescorer, choice, args.threads)
-    if choice == SHIPPED and (model is None or not rescorer.fitted_for(model, refiner.path)):
+    read = None if small_read is None else small_read.record()
+    shipped = choice == SHIPPED
+    if shipped and small_read is not None:  # the shipped file fitted on that read's boxes
+        choice = str(SMALL_READ_BOX_RESCORER)
+    rescorer = _open_tool(BoxRescorer, choice, args.threads)
+    if shipped and (model is None or not rescorer.fitted_for(model, refiner.path, read)):
         fitted = rescorer.fitted_with
         raise InputError(f"{rescorer.path}: fitted on the scores of "
                          f"{(fitted['detector'] or {}).get('file')} with "
-                         f"{(fitted['box_refiner'] or {}).get('file')}, not on {model} with "
-                         f"{refiner.path}; fit one for them with `lunarnav train-box-rescorer` "
-                         f"and name it")
+                         f"{(fitted['box_refiner'] or {}).get('file')}, fitted on the boxes of "
+                         f"{_read_flags(fitted['small_read'])}; asked for {model} with "
+                         f"{refiner.path} and {_read_flags(read)}; fit one for them with "
+                         f"`lunarnav train-box-rescorer` and name it")
     return rescorer
+
+
+def _read_flags(read: dict[str, float] | None) -> str:
+    """A rescorer's recorded read as the flags that give it."""
+    return ("one read" if read is None else
+            f"--small-read {read['side']} --small-read-below {read['below_px']:g}")
 
 
 def _add_tool_arguments(p: argparse.ArgumentParser, name: str, on_help: str,

@@ -72,6 +72,11 @@ class SmallBoxReadConfig:
                                   f"{list(self.band)}")
             object.__setattr__(self, "band", band)
 
+    def record(self) -> dict[str, float]:
+        """What a box rescorer fitted on this read's boxes records of it: the side and the cut
+        (a band reads the same boxes where it reads)."""
+        return {"side": self.side, "below_px": float(self.below_px)}
+
     def describe(self) -> str:
         """One line for report titles."""
         rows = "" if self.band is None else f" (rows {self.band[0]:g}-{self.band[1]:g})"

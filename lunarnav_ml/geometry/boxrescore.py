@@ -53,7 +53,6 @@ FEATURES = (
 DEFAULT_BOX_RESCORER = Path(__file__).resolve().parents[1] / "weights" / "box_rescorer.onnx"
 # fitted on the boxes of `--small-read 640` (the default cut), for the paper's 1024 px frames
 SMALL_READ_BOX_RESCORER = DEFAULT_BOX_RESCORER.with_name("box_rescorer_small_read.onnx")
-SMALL_READ_SIDE = 640
 
 
 def rescored_by(path: str | os.PathLike | None) -> str:
@@ -153,7 +152,7 @@ class BoxRescorer:
             raise InputError(f"{self.path}: expected input '{FEATURES_NAME}' and output "
                              f"'{PROBABILITIES_NAME}', got inputs {ins}, outputs {outs}")
         self.fitted_with = {key: json.loads(props.get(f"lunarnav.{key}", "null"))
-                            for key in ("detector", "box_refiner")}
+                            for key in ("detector", "box_refiner", "small_read")}
 
     def __call__(self, features: np.ndarray) -> np.ndarray:
         """(K,) float32 in [0, 1]: each box's probability of matching a countable crater.
@@ -170,10 +169,14 @@ class BoxRescorer:
         prob = self.session.run([PROBABILITIES_NAME], {FEATURES_NAME: x})[0]
         return np.clip(np.asarray(prob, np.float32)[:, -1], 0.0, 1.0)
 
-    def fitted_for(self, detector: str | os.PathLike, box_refiner: str | os.PathLike) -> bool:
+    def fitted_for(self, detector: str | os.PathLike, box_refiner: str | os.PathLike,
+                   small_read: dict[str, float] | None = None) -> bool:
         """Whether this file was fitted on the scores of the file ``detector`` with the file
-        ``box_refiner`` (same bytes)."""
+        ``box_refiner`` (same bytes), read as ``small_read`` says (``SmallBoxReadConfig.record``
+        of ``--small-read``; None: one read, as a file that records none was fitted)."""
         want = self.fitted_with
+        if want["small_read"] != small_read:
+            return False
         try:
             return bool(want["detector"] and want["box_refiner"]
                         and want["detector"].get("sha256") == file_digest(detector)

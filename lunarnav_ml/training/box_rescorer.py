@@ -180,11 +180,13 @@ def _fingerprint(path: str | Path) -> str:
 def run(datasets: Sequence[str | Path], detections: Sequence[str | Path], out: str | Path,
         detector: str | Path, box_refiner: str | Path | None = None,
         config: BoxRescorerConfig = BoxRescorerConfig(), progress: bool = True,
-        repeats: Sequence[int] | None = None) -> BoxRescorerReport:
+        repeats: Sequence[int] | None = None, small_read: dict[str, float] | None = None
+        ) -> BoxRescorerReport:
     """Features, fit and export: what ``lunarnav train-box-rescorer`` does. ``detector`` is the
     model file whose results ``detections`` are (recorded by name and SHA-256, with the box
     refiner's: ``--box-rescorer`` without a file name refuses other pairs);
-    ``repeats`` weighs each set's rows (default 1 each)."""
+    ``repeats`` weighs each set's rows (default 1 each); ``small_read``: the second read the
+    detections were made with (``SmallBoxReadConfig.record``), recorded likewise."""
     repeats = checked_repeats(repeats, len(datasets))
     if not Path(detector).is_file():
         raise InputError(f"{detector}: no such detector file")
@@ -200,6 +202,7 @@ def run(datasets: Sequence[str | Path], detections: Sequence[str | Path], out: s
     report = BoxRescorerReport(len(y), int(y.sum()), time.perf_counter() - t0)
     meta = {"lunarnav.detector": _fingerprint(detector),
             "lunarnav.box_refiner": _fingerprint(refiner.path),
+            "lunarnav.small_read": json.dumps(small_read),
             "lunarnav.training": json.dumps({
                 "datasets": [str(d) for d in datasets],
                 "detections": [str(d) for d in detections], "repeats": repeats,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from lunarnav_ml.errors import ConfigError
 from lunarnav_ml.eval.cli import add_box_refiner_arguments, add_box_rescorer_arguments
-from lunarnav_ml.eval.smallread import add_small_read_arguments
+from lunarnav_ml.eval.smallread import DEFAULT_BELOW_PX, add_small_read_arguments, small_read_config
 from lunarnav_ml.eval.tta import add_tta_arguments
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "small.pt"
@@ -187,6 +187,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "shipped rescorer refuses other models)")
     p.add_argument("--box-refiner", type=Path, default=None,
                    help="box refiner with a quality output (default: the shipped one)")
+    p.add_argument("--small-read", type=int, default=None, metavar="SIDE",
+                   help="the detections were made with this --small-read (recorded: the "
+                        "shipped file for that read is refused for other reads)")
+    p.add_argument("--small-read-below", type=float, default=DEFAULT_BELOW_PX, metavar="PX",
+                   help="(--small-read) its --small-read-below; default %(default)s")
     p.add_argument("--out", type=Path, required=True, help="ONNX file to write")
     p.add_argument("--repeats", type=int, nargs="+", default=None,
                    help="each set's weight in the fit, in the same order (default 1 each), "
@@ -225,9 +230,11 @@ def run_train_box_rescorer(args: argparse.Namespace) -> int:
 
     given = {k: getattr(args, k) for k in ("trees", "seed")}
     config = BoxRescorerConfig(**{k: v for k, v in given.items() if v is not None})
+    read = small_read_config(args)  # checked before the features are computed
     check_destination(args.out)
     report = run(args.datasets, args.detections, args.out, args.detector, args.box_refiner,
-                 config, progress=not args.quiet, repeats=args.repeats)
+                 config, progress=not args.quiet, repeats=args.repeats,
+                 small_read=None if read is None else read.record())
     print(f"lunarnav train-box-rescorer: {report.n_rows} crater boxes ({report.n_positive} on "
           f"a countable crater) in {report.seconds:.0f} s -> {args.out}")
     return 0

@@ -193,6 +193,7 @@ def test_cli_fit_and_the_default_choice(labelled_set, tmp_path, capsys):
     assert "6 crater boxes (2 on a countable crater)" in capsys.readouterr().out
     props = {p.key: p.value for p in onnx.load(str(out)).metadata_props}
     assert json.loads(props["lunarnav.training"])["repeats"] == [1, 3]
+    assert json.loads(props["lunarnav.small_read"]) is None  # fitted on one read
     rescorer = BoxRescorer(out)
     assert rescorer.fitted_with["detector"] == {"file": "model.pt",
                                                 "sha256": file_digest(root / "model.pt")}
@@ -218,7 +219,8 @@ def test_cli_fit_and_the_default_choice(labelled_set, tmp_path, capsys):
     assert load_box_rescorer(args, DEFAULT_WEIGHTS, BoxRefiner()).path == DEFAULT_BOX_RESCORER
     # with --small-read the shipped file is the one fitted on that read's boxes
     args.small_read, args.small_read_below, args.small_read_band = 640, 15.0, (0.27, 0.56)
-    assert BoxRescorer(SMALL_READ_BOX_RESCORER).fitted_for(DEFAULT_WEIGHTS, DEFAULT_BOX_REFINER)
+    assert BoxRescorer(SMALL_READ_BOX_RESCORER).fitted_for(DEFAULT_WEIGHTS, DEFAULT_BOX_REFINER,
+                                                           {"side": 640, "below_px": 15.0})
     assert load_box_rescorer(args, DEFAULT_WEIGHTS, BoxRefiner()).path == SMALL_READ_BOX_RESCORER
     assert rescored_by(SMALL_READ_BOX_RESCORER).endswith("shipped box rescorer for --small-read")
     for side, below in ((768, 15.0), (640, 9.0)):  # another read: refused, not misapplied
@@ -227,6 +229,19 @@ def test_cli_fit_and_the_default_choice(labelled_set, tmp_path, capsys):
             load_box_rescorer(args, DEFAULT_WEIGHTS, BoxRefiner())
     args.box_rescorer = str(out)  # a named file with any read: the user's choice
     assert load_box_rescorer(args, tmp_path / "other.pt", refiner).path == out
+    # the read is the file's record, not a rule of the command line
+    small = BoxRescorer(SMALL_READ_BOX_RESCORER)
+    assert small.fitted_with["small_read"] == {"side": 640, "below_px": 15.0}
+    assert not small.fitted_for(DEFAULT_WEIGHTS, DEFAULT_BOX_REFINER)  # not for one read
+    assert not shipped.fitted_for(DEFAULT_WEIGHTS, DEFAULT_BOX_REFINER, small.fitted_with[
+        "small_read"])  # nor the one-read file for the second read
+    read_out = tmp_path / "read.onnx"
+    assert main(["train-box-rescorer", str(root), "--detections", str(root / "detections.json"),
+                 "--detector", str(root / "model.pt"), "--box-refiner", str(root / "q.onnx"),
+                 "--out", str(read_out), "--trees", "5", "--small-read", "512", "--quiet"]) == 0
+    assert BoxRescorer(read_out).fitted_with["small_read"] == {"side": 512, "below_px": 15.0}
+    assert BoxRescorer(read_out).fitted_for(root / "model.pt", refiner.path,
+                                            {"side": 512, "below_px": 15.0})
 
 
 def test_cli_errors_are_one_line(labelled_set, tmp_path, capsys):
