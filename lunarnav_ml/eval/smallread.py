@@ -22,12 +22,17 @@ AP50 0.677, key-crater Pd 0.849, Pd 0.77-0.86 at every sun zenith).
 ``band`` reads only a band of rows, through a rectangular input: on the paper's camera rows
 0.27-0.56 of the height took 90 ms against 201 ms for the whole second read (60 ms for one
 read), but found fewer craters near the horizon (validation AP50 0.629 against 0.639, key Pd
-0.818 against 0.846).
+0.818 against 0.846). ``horizon`` gives the band as angles over and under the camera's horizon
+instead, for any camera pitch: :meth:`SmallBoxReadConfig.at_camera` turns it into rows once the
+camera is known (``lunarnav localize``'s camera record).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -52,11 +57,16 @@ class SmallBoxReadConfig:
         band: ``(top, bottom)``, fractions of the frame's height: the second read covers these
             rows only, at the scale the whole frame would have had (a rectangular input, so
             it costs about ``bottom - top`` of a whole second read); None: the whole frame.
+        horizon: ``(above_deg, below_deg)``: the band as the rows from ``above_deg`` over the
+            camera's horizon down to ``below_deg`` under it (not with ``band``; the read needs
+            :meth:`at_camera` first). The paper's camera (pitch 20 deg, 90 deg field of view)
+            puts rows 0.15-0.6 at 15.0 over and 31.3 under.
     """
 
     side: int
     below_px: float = DEFAULT_BELOW_PX
     band: tuple[float, float] | None = None
+    horizon: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.side, bool) or not isinstance(self.side, int) or self.side <= 0:
@@ -71,6 +81,42 @@ class SmallBoxReadConfig:
                                   f"BOTTOM <= 1 (fractions of the frame's height), got "
                                   f"{list(self.band)}")
             object.__setattr__(self, "band", band)
+        if self.horizon is not None:
+            angles = tuple(float(v) for v in self.horizon)
+            if self.band is not None:
+                raise ConfigError("--small-read-band and --small-read-horizon: choose one")
+            if len(angles) != 2 or not all(-90.0 < v < 90.0 for v in angles) \
+                    or not angles[0] + angles[1] > 0:  # NaN fails too
+                raise ConfigError(f"--small-read-horizon: expected ABOVE BELOW in degrees over "
+                                  f"and under the horizon (each in (-90, 90), ABOVE + BELOW > "
+                                  f"0), got {list(self.horizon)}")
+            object.__setattr__(self, "horizon", angles)
+
+    def at_camera(self, camera: Mapping[str, float], height: int) -> SmallBoxReadConfig:
+        """This read for one camera: ``horizon`` turned into a ``band`` of the rows of a frame
+        ``height`` px high, from the camera's ``pitch_deg`` (optical axis below the horizon),
+        ``fy`` and ``cy`` (px; roll is left out); itself without ``horizon``.
+
+        Raises:
+            ConfigError: the band lies wholly outside the frame for this camera.
+        """
+        if self.horizon is None:
+            return self
+        above, below = self.horizon
+
+        def row(elevation_deg: float) -> float:  # the frame row of a ray at this elevation
+            tilt = elevation_deg + camera["pitch_deg"]  # over the optical axis, deg
+            if abs(tilt) >= 90.0:
+                return 0.0 if tilt > 0 else float(height)
+            return camera["cy"] - camera["fy"] * math.tan(math.radians(tilt))
+
+        top, bottom = (min(max(row(e) / height, 0.0), 1.0) for e in (above, -below))
+        if bottom <= top:
+            raise ConfigError(f"--small-read-horizon {above:g} {below:g}: no row of the frame "
+                              f"lies in the band for a camera pitched "
+                              f"{camera['pitch_deg']:g} deg down (fy {camera['fy']:g}, cy "
+                              f"{camera['cy']:g} px)")
+        return dataclasses.replace(self, band=(top, bottom), horizon=None)
 
     def record(self) -> dict[str, float]:
         """What a box rescorer fitted on this read's boxes records of it: the side and the cut
@@ -79,7 +125,9 @@ class SmallBoxReadConfig:
 
     def describe(self) -> str:
         """One line for report titles."""
-        rows = "" if self.band is None else f" (rows {self.band[0]:g}-{self.band[1]:g})"
+        rows = "" if self.band is None else f" (rows {self.band[0]:.3g}-{self.band[1]:.3g})"
+        if self.horizon is not None:
+            rows = f" ({self.horizon[0]:g} deg over to {self.horizon[1]:g} under the horizon)"
         return f"boxes under {self.below_px:g} px high read again at {self.side} px{rows}"
 
 
@@ -94,6 +142,10 @@ class SmallBoxReadPredictor:
     predictor's signature and output, and other attributes are the wrapped predictor's."""
 
     def __init__(self, predictor: Any, config: SmallBoxReadConfig) -> None:
+        if config.horizon is not None:
+            raise ConfigError("--small-read-horizon needs the camera's pitch: give the rows as "
+                              "--small-read-band TOP BOTTOM here (lunarnav localize takes "
+                              "--small-read-horizon, from its --camera record)")
         self.predictor, self.config = predictor, config
         self.base_side = square_side(predictor, "--small-read")
         self.stride = max_stride(predictor)
@@ -167,9 +219,10 @@ class SmallBoxReadPredictor:
         return {"boxes": boxes[keep], "scores": scores[keep], "labels": labels[keep]}
 
 
-def add_small_read_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--small-read SIDE`` and ``--small-read-below PX`` for a command that runs a
-    detector."""
+def add_small_read_arguments(parser: argparse.ArgumentParser, horizon: bool = False) -> None:
+    """``--small-read SIDE``, ``--small-read-below PX`` and ``--small-read-band TOP BOTTOM`` for a
+    command that runs a detector; ``horizon``: also ``--small-read-horizon ABOVE BELOW``, for a
+    command that knows its camera."""
     parser.add_argument("--small-read", type=int, default=None, metavar="SIDE",
                         help="read each frame a second time at this network side (px) and add "
                              "the boxes that are small at the model's own side: for frames much "
@@ -186,6 +239,14 @@ def add_small_read_arguments(parser: argparse.ArgumentParser) -> None:
                              "the network finds fewer of them in a band (the paper's camera, "
                              "0.27 0.56: crater AP50 0.629 against the whole frame's 0.639, key "
                              "Pd 0.818 against 0.846); default the whole frame")
+    if horizon:
+        parser.add_argument("--small-read-horizon", type=float, nargs=2, default=None,
+                            metavar=("ABOVE", "BELOW"),
+                            help="(--small-read) read again only the rows from ABOVE degrees "
+                                 "over the camera's horizon to BELOW degrees under it, from the "
+                                 "camera record's pitch_deg, fy and cy: the band for any pitch "
+                                 "(the paper's camera: 15 31 are its rows 0.15-0.6); not with "
+                                 "--small-read-band")
 
 
 def small_read_config(args: argparse.Namespace) -> SmallBoxReadConfig | None:
@@ -194,6 +255,7 @@ def small_read_config(args: argparse.Namespace) -> SmallBoxReadConfig | None:
     side = getattr(args, "small_read", None)
     if side is None:
         return None
-    band = getattr(args, "small_read_band", None)
+    band, horizon = (getattr(args, f"small_read_{k}", None) for k in ("band", "horizon"))
     return SmallBoxReadConfig(side=side, below_px=args.small_read_below,
-                              band=None if band is None else tuple(band))
+                              band=None if band is None else tuple(band),
+                              horizon=None if horizon is None else tuple(horizon))

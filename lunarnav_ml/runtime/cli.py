@@ -67,7 +67,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--lift-from", default="box", choices=("box", "fit"),
                    help="lift each crater from the box's inscribed ellipse (default) or from "
                         "the fitted rim ellipse; the fitted one is reported either way")
-    add_small_read_arguments(p)
+    add_small_read_arguments(p, horizon=True)
     add_refiner_arguments(p)
     add_box_refiner_arguments(p)
     add_box_rescorer_arguments(p)
@@ -126,8 +126,9 @@ def run_localize(args: argparse.Namespace) -> int:
     lifter = lifter_overrides(args, default_lifter(refiner))
     stereo = replace(SGBMStereo.for_width(left.shape[1]), mode=args.sgbm_mode)
     # an .onnx file runs through the torch-free OnnxDetector, a checkpoint through torch
-    detector = load_predictor(weights, args.threads, args.img_size,
-                              small_read=small_read_config(args))
+    small_read = small_read_config(args)  # a band over the horizon read at this camera
+    small_read = None if small_read is None else small_read.at_camera(camera, left.shape[0])
+    detector = load_predictor(weights, args.threads, args.img_size, small_read=small_read)
     localizer = StereoCraterLocalizer(detector, rig,
                                       conf_thres=args.conf, iou_thres=args.iou, stereo=stereo,
                                       lift_from=args.lift_from, refiner=refiner,
@@ -136,7 +137,8 @@ def run_localize(args: argparse.Namespace) -> int:
     craters = localizer(left, right)
     record = {"left": str(args.left), "right": str(args.right), "camera": camera,
               "weights": str(weights), "conf": args.conf, "iou": args.iou,
-              "small_read": args.small_read,
+              "small_read": None if small_read is None else {**small_read.record(),
+                                                             "band": small_read.band},
               "lift_from": args.lift_from, "min_flank_rise_px": lifter.min_flank_rise_px,
               "refiner": None if refiner is None else str(refiner.path),
               "box_refiner": None if box_refiner is None else str(box_refiner.path),

@@ -106,10 +106,45 @@ def test_a_band_of_rows_is_read_at_the_whole_frames_scale_and_mapped_back():
                                            ({"side": 640, "band": (math.nan, 0.5)},
                                             "--small-read-band"),
                                            ({"side": 640, "band": (0.1,)},
-                                            "--small-read-band")])
+                                            "--small-read-band"),
+                                           ({"side": 640, "horizon": (5.0, -5.0)},
+                                            "--small-read-horizon"),
+                                           ({"side": 640, "horizon": (90.0, 5.0)},
+                                            "--small-read-horizon"),
+                                           ({"side": 640, "horizon": (math.nan, 5.0)},
+                                            "--small-read-horizon"),
+                                           ({"side": 640, "band": (0.1, 0.5),
+                                             "horizon": (5.0, 5.0)}, "choose one")])
 def test_config_rejects_bad_values(kwargs, field):
     with pytest.raises(ConfigError, match=field):
         SmallBoxReadConfig(**kwargs)
+
+
+PAPER_CAMERA = {"pitch_deg": 20.0, "fy": 512.0, "cy": 512.0}  # 1024 px, 90 deg
+
+
+def test_a_band_over_the_horizon_is_read_as_rows_of_the_camera():
+    config = SmallBoxReadConfig(640, horizon=(15.0, 31.3))
+    assert config.describe().endswith("(15 deg over to 31.3 under the horizon)")
+    rows = config.at_camera(PAPER_CAMERA, 1024)
+    assert rows.horizon is None and rows.band == pytest.approx((0.15, 0.60), abs=2e-3)
+    assert rows.record() == config.record() == {"side": 640, "below_px": 15.0}
+    # the horizon row, 186 px over the centre: a band of 1 deg each side straddles it
+    top, bottom = SmallBoxReadConfig(640, horizon=(1.0, 1.0)).at_camera(PAPER_CAMERA, 1024).band
+    assert top < (512 - 512 * math.tan(math.radians(20))) / 1024 < bottom
+    assert bottom - top == pytest.approx(2 * 512 / math.cos(math.radians(20)) ** 2
+                                         * math.radians(1) / 1024, rel=0.01)
+    # level camera, a band past the frame's edge is clipped to it
+    level = {"pitch_deg": 0.0, "fy": 512.0, "cy": 512.0}
+    assert SmallBoxReadConfig(640, horizon=(60.0, 80.0)).at_camera(level, 1024).band == (0, 1)
+    assert SmallBoxReadConfig(640, band=(0.2, 0.3)).at_camera(level, 1024).band == (0.2, 0.3)
+    with pytest.raises(ConfigError, match="no row of the frame lies in the band"):
+        SmallBoxReadConfig(640, horizon=(80.0, -60.0)).at_camera(PAPER_CAMERA, 1024)
+
+
+def test_a_band_over_the_horizon_needs_the_camera_first():
+    with pytest.raises(ConfigError, match="--small-read-horizon needs the camera's pitch"):
+        SmallBoxReadPredictor(TwoSides(), SmallBoxReadConfig(192, horizon=(15.0, 31.0)))
 
 
 def test_a_side_not_larger_than_the_models_own_and_tta_together_are_refused():

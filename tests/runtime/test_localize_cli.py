@@ -86,12 +86,21 @@ def test_a_second_read_of_the_small_boxes(pair, tmp_path):
     root, sc = pair
     assert _run(root, "--conf", "0.2", "--small-read", "640", "--out", str(tmp_path)) == 0
     out = json.loads((tmp_path / "craters3d.json").read_text())
-    assert out["small_read"] == 640
+    assert out["small_read"] == {"side": 640, "below_px": 15.0, "band": None}
     from lunarnav_ml.eval.smallread import SmallBoxReadConfig
 
     _same_craters_as_detect(root, out, SmallBoxReadConfig(640))
     assert any(c["ok"] and abs(c["diameter_m"] - sc.crater.diameter) < 0.25 * sc.crater.diameter
                for c in out["craters"])
+    # a band over the horizon of this camera: pitch 10 deg, fy 320 px, cy 240 of 480 rows
+    assert _run(root, "--conf", "0.2", "--small-read", "640", "--small-read-horizon", "15", "31",
+                "--out", str(tmp_path / "band")) == 0
+    out = json.loads((tmp_path / "band" / "craters3d.json").read_text())
+    r = sc.rig
+    top = (r.cy - r.focal_px * np.tan(np.radians(25.0))) / 480
+    bottom = (r.cy + r.focal_px * np.tan(np.radians(21.0))) / 480
+    assert out["small_read"]["band"] == pytest.approx([top, bottom])
+    _same_craters_as_detect(root, out, SmallBoxReadConfig(640, band=(top, bottom)))
 
 
 def test_the_box_rescorer_needs_its_own_threshold(pair, tmp_path, capsys):
