@@ -24,8 +24,11 @@ from pathlib import Path
 import torch
 
 from lunarnav_ml.data.coco import read_coco, read_image
-from lunarnav_ml.eval.cli import (add_box_refiner_arguments, add_box_rescorer_arguments,
-                                  predictor_from_args)
+from lunarnav_ml.eval.cli import (
+    add_box_refiner_arguments,
+    add_box_rescorer_arguments,
+    predictor_from_args,
+)
 from lunarnav_ml.eval.smallread import add_small_read_arguments
 from lunarnav_ml.runtime.cli import DEFAULT_CONF
 
