@@ -360,6 +360,7 @@ def check_settings(args: argparse.Namespace) -> None:
         raise ConfigError(f"--max-fa: must be a finite number >= 0, got {args.max_fa}")
     if args.overlays < 0:
         raise ConfigError(f"--overlays: must be >= 0, got {args.overlays}")
+    small_read_config(args)  # a bad second read, or rows without one, named before any work
 
 
 def _dispatch(args: argparse.Namespace) -> int:

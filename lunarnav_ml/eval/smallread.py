@@ -253,11 +253,19 @@ def add_small_read_arguments(parser: argparse.ArgumentParser, horizon: bool = Fa
 
 def small_read_config(args: argparse.Namespace) -> SmallBoxReadConfig | None:
     """The :class:`SmallBoxReadConfig` the arguments ask for, or None without
-    ``--small-read``."""
+    ``--small-read``.
+
+    Raises:
+        ConfigError: a band of rows given without ``--small-read`` (it would read nothing).
+    """
     side = getattr(args, "small_read", None)
-    if side is None:
-        return None
     band, horizon = (getattr(args, f"small_read_{k}", None) for k in ("band", "horizon"))
+    if side is None:
+        if band is not None or horizon is not None:
+            option = "--small-read-band" if band is not None else "--small-read-horizon"
+            raise ConfigError(f"{option} chooses the rows of the second read: give "
+                              f"--small-read SIDE too (640 for 1024 px frames)")
+        return None
     return SmallBoxReadConfig(side=side, below_px=args.small_read_below,
                               band=None if band is None else tuple(band),
                               horizon=None if horizon is None else tuple(horizon))

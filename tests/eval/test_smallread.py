@@ -198,6 +198,25 @@ def test_detection_report_names_the_second_read(tmp_path, onnx_path):
     assert line not in (tmp_path / "plain" / "report.md").read_text()
     assert line in (tmp_path / "read" / "report.md").read_text()
 
+def test_a_band_without_the_second_read_is_refused(tmp_path, capsys):
+    from lunarnav_ml.cli import main
+
+    assert main(["eval", "--task", "detection", "--test-gt", str(tmp_path / "none.json"),
+                 "--threshold", "0.5", "--out", str(tmp_path / "out"), "--small-read-band",
+                 "0.2", "0.6"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--small-read-band chooses the rows of the second read: give --small-read" in err
+    assert "Traceback" not in err and not (tmp_path / "out").exists()
+    from argparse import Namespace
+
+    from lunarnav_ml.eval.smallread import small_read_config
+
+    with pytest.raises(ConfigError, match="--small-read-horizon chooses the rows"):
+        small_read_config(Namespace(small_read=None, small_read_band=None,
+                                    small_read_horizon=[15.0, 31.0]))
+    assert small_read_config(Namespace(small_read=None)) is None
+
+
 def test_a_bad_second_read_is_one_line_naming_the_option(tmp_path, onnx_path, capsys):
     from lunarnav_ml.cli import main
     from tests.detector_fixtures import make_coco
