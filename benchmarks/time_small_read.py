@@ -1,7 +1,7 @@
 """Onboard time of the detector with and without a second read of its small boxes.
 
-Each design is a set of `lunarnav eval` / `lunarnav localize` read flags (``--small-read``,
-``--small-read-band``, ``--box-rescorer``) on top of the shipped box refiner. Every design reads
+Each design is a set of `lunarnav eval` read flags (``--small-read``, ``--small-read-band``,
+``--box-rescorer``, ``--tta``) on top of the shipped box refiner. Every design reads
 the same frames; a frame's time is the median over ``--repeats`` reads of it (after one warm-up
 read), and the design's time the median over the frames; the designs take turns frame by frame,
 round by round. Prints one row per design, in ms, and its ratio to the first design.
@@ -30,6 +30,7 @@ from lunarnav_ml.eval.cli import (
     predictor_from_args,
 )
 from lunarnav_ml.eval.smallread import add_small_read_arguments
+from lunarnav_ml.eval.tta import add_tta_arguments
 from lunarnav_ml.runtime.cli import DEFAULT_CONF
 
 
@@ -38,7 +39,7 @@ def design_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="design", add_help=False)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--img-size", type=int, default=None)
-    p.add_argument("--tta", action="store_true")
+    add_tta_arguments(p)
     add_small_read_arguments(p)
     add_box_refiner_arguments(p)
     add_box_rescorer_arguments(p)

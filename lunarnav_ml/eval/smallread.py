@@ -247,7 +247,7 @@ def add_small_read_arguments(parser: argparse.ArgumentParser, horizon: bool = Fa
                             help="(--small-read) read again only the rows from ABOVE degrees "
                                  "over the camera's horizon to BELOW degrees under it, from the "
                                  "camera record's pitch_deg, fy and cy: the band for any pitch "
-                                 "(the paper's camera: 15 31 are its rows 0.15-0.6); not with "
+                                 "(the paper's camera: 15 31.3 are its rows 0.15-0.6); not with "
                                  "--small-read-band")
 
 
