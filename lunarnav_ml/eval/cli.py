@@ -236,7 +236,8 @@ def _results_for(args: argparse.Namespace, split: str, model: Callable[[], Any]
         return gt, read_coco_results(results_path)
     if args.model is None:
         raise InputError(f"eval: give --model or --{split}-results for the {split} split")
-    return gt, predict_coco(model(), gt, gt_path.parent, desc=split, progress=not args.no_progress)
+    return gt, predict_coco(model(), gt, gt_path.parent, desc=split, origin=str(gt_path),
+                            progress=not args.no_progress)
 
 
 def run_detection(args: argparse.Namespace) -> int:
@@ -337,7 +338,7 @@ def run_transfer(args: argparse.Namespace) -> int:
         weights = args.onnx or args.checkpoint or args.model
         predictor = predictor_from_args(args, weights)
         results = predict_coco(predictor, gt, gt_path.parent, desc="transfer",
-                               progress=not args.no_progress)
+                               origin=str(gt_path), progress=not args.no_progress)
         if hasattr(predictor, "describe"):
             title += f" ({predictor.describe()})"
     with atomic.atomic_dir(args.out) as work:
@@ -398,7 +399,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--img-size", type=int, default=None,
                    help="(detection, transfer) network input side, px; default the model's")
     add_tta_arguments(p)
-    add_small_read_arguments(p)
+    add_small_read_arguments(p, horizon=True)
     p.add_argument("--overlays", type=int, default=12, help="overlay images to write")
     p.add_argument("--ellipse-source", choices=("box", "fit", "label"), default="box",
                    help="(geometry) the ellipse each crater is lifted from: the box's inscribed "

@@ -39,27 +39,72 @@ def predict_coco(
     batch: int = 8,
     progress: bool = True,
     desc: str = "detect",
+    origin: str | None = None,
 ) -> list[dict[str, Any]]:
     """Detect on every image of a COCO dataset.
+
+    A second read of a band over the camera's horizon (``--small-read-horizon``, a
+    :class:`~lunarnav_ml.eval.smallread.SmallBoxReadPredictor` in ``predictor``) reads each
+    image's own ``camera`` record: the images run in groups of one camera each, the results
+    come back in the dataset's image order.
 
     Args:
         predictor: object with ``predict(images, conf_thres, iou_thres)`` returning per image
             ``{"boxes": (N, 4) xyxy px, "scores": (N,), "labels": (N,) category ids}``.
         dataset: COCO dict; ``file_name`` relative to ``root``.
         root: folder the image paths are relative to.
+        origin: the dataset's file, for errors (default ``root``).
 
     Returns:
         COCO results ``[{image_id, category_id, bbox [x, y, w, h], score}]``.
+
+    Raises:
+        InputError: a band over the horizon and an image without a valid camera record.
     """
-    results: list[dict[str, Any]] = []
+    from lunarnav_ml.eval.smallread import small_reader
+
+    reader = small_reader(predictor)
+    if reader is None or reader.config.horizon is None:
+        groups = [(None, dataset["images"])]
+    else:
+        groups = camera_groups(dataset, origin or str(root))
+    per_image: dict[int, list[dict[str, Any]]] = {}
     bar = tqdm(total=len(dataset["images"]), desc=desc, disable=not progress, unit="img")
-    for records, images in iter_batches(dataset, root, batch):
-        preds = predictor.predict(images, conf_thres=conf_thres, iou_thres=iou_thres)
-        for record, pred in zip(records, preds):
-            results.extend(to_coco_results(pred, record["id"]))
-        bar.update(len(records))
+    for camera, records_of_camera in groups:
+        if camera is not None:
+            reader.camera = camera
+        for records, images in iter_batches({"images": records_of_camera}, root, batch):
+            preds = predictor.predict(images, conf_thres=conf_thres, iou_thres=iou_thres)
+            for record, pred in zip(records, preds):
+                per_image[id(record)] = to_coco_results(pred, record["id"])
+            bar.update(len(records))
     bar.close()
-    return results
+    return [r for record in dataset["images"] for r in per_image[id(record)]]
+
+
+def camera_groups(dataset: dict[str, Any], origin: str
+                  ) -> list[tuple[dict[str, float], list[dict[str, Any]]]]:
+    """The dataset's image records grouped by their ``camera`` record's values
+    (:func:`~lunarnav_ml.geometry.frames.camera_values`), groups in the order first seen.
+
+    Raises:
+        InputError: an image without a camera record, or with a bad one, naming ``origin`` and
+            the image.
+    """
+    from lunarnav_ml.geometry.frames import camera_values
+
+    groups: dict[tuple, tuple[dict[str, float], list[dict[str, Any]]]] = {}
+    for record in dataset["images"]:
+        where = f"{origin}: image {record.get('id')} ({record.get('file_name')})"
+        if "camera" not in record:
+            raise InputError(f"{where} has no camera record to read --small-read-horizon "
+                             f"against: give the rows as --small-read-band TOP BOTTOM")
+        try:
+            values = camera_values(record["camera"])
+        except InputError as err:
+            raise InputError(f"{where}: {err}") from None
+        groups.setdefault(tuple(sorted(values.items())), (values, []))[1].append(record)
+    return list(groups.values())
 
 
 def check_coco_results(results: Any, origin: str) -> list[dict[str, Any]]:

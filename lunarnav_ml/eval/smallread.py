@@ -25,8 +25,9 @@ AP50 0.677, key-crater Pd 0.849, Pd 0.77-0.86 at every sun zenith).
 more, for 0.66 of the whole second read's time; the narrower 0.27-0.56 misses craters near the
 horizon (validation AP50 0.629 against 0.639 without the rescorer). ``horizon`` gives the band
 as angles over and under the camera's horizon instead, for any camera pitch:
-:meth:`SmallBoxReadConfig.at_camera` turns it into rows once the camera is known (``lunarnav
-localize``'s camera record).
+:meth:`SmallBoxReadConfig.at_camera` turns it into rows once the camera is known (the
+``--camera`` record of ``lunarnav localize`` and ``lunarnav detect``; each image's own record in
+``lunarnav eval``, through :attr:`SmallBoxReadPredictor.camera`).
 """
 
 from __future__ import annotations
@@ -143,12 +144,10 @@ class SmallBoxReadPredictor:
     an onnxruntime ``OnnxDetector`` exported with a dynamic input); ``predict`` has the wrapped
     predictor's signature and output, and other attributes are the wrapped predictor's."""
 
-    def __init__(self, predictor: Any, config: SmallBoxReadConfig) -> None:
-        if config.horizon is not None:
-            raise ConfigError("--small-read-horizon needs the camera's pitch: give the rows as "
-                              "--small-read-band TOP BOTTOM here (lunarnav localize takes "
-                              "--small-read-horizon, from its --camera record)")
+    def __init__(self, predictor: Any, config: SmallBoxReadConfig,
+                 camera: Mapping[str, float] | None = None) -> None:
         self.predictor, self.config = predictor, config
+        self.camera = camera  # what a ``horizon`` is read against; set per frame group
         self.base_side = square_side(predictor, "--small-read")
         self.stride = max_stride(predictor)
         if config.side <= self.base_side:
@@ -175,25 +174,45 @@ class SmallBoxReadPredictor:
         first, at most ``max_det``."""
         if not images:
             return []
+        bands = [self.band_for(image.shape[0]) for image in images]  # a camera missing: now
         own = self.predictor.predict(images, conf_thres, iou_thres, max_det)
         try:
-            if self.config.band is None:
+            if all(band is None for band in bands):
                 self.predictor.set_img_size(self.config.side)
                 larger = self.predictor.predict(images, conf_thres, iou_thres, max_det)
             else:
-                larger = [self.read_band(image, conf_thres, iou_thres, max_det)
-                          for image in images]
+                larger = [self.read_band(image, conf_thres, iou_thres, max_det, band)
+                          for image, band in zip(images, bands, strict=True)]
         finally:
             self.predictor.set_img_size(self.base_side)
         return [self.merge(a, b, image.shape, iou_thres, max_det)
                 for a, b, image in zip(own, larger, images, strict=True)]
 
-    def read_band(self, image: np.ndarray, conf_thres: float, iou_thres: float, max_det: int
-                  ) -> dict[str, np.ndarray]:
-        """The second read of one frame's band of rows, at the scale ``side`` gives the whole
-        frame, through an input just large enough for the band; boxes in frame pixels."""
+    def band_for(self, height: int) -> tuple[float, float] | None:
+        """The rows a frame ``height`` px high is read again in: the config's ``band``, or its
+        ``horizon`` at :attr:`camera`; None: the whole frame.
+
+        Raises:
+            ConfigError: a ``horizon`` and no camera to read it against, or a band outside the
+                frame for this camera.
+        """
+        if self.config.horizon is None:
+            return self.config.band
+        if self.camera is None:
+            raise ConfigError("--small-read-horizon needs the camera's pitch: give the rows as "
+                              "--small-read-band TOP BOTTOM, or a camera record (lunarnav "
+                              "detect --camera, localize --camera; eval reads each image's)")
+        return self.config.at_camera(self.camera, height).band
+
+    def read_band(self, image: np.ndarray, conf_thres: float, iou_thres: float, max_det: int,
+                  band: tuple[float, float] | None = None) -> dict[str, np.ndarray]:
+        """The second read of one frame's band of rows (default :meth:`band_for`'s), at the
+        scale ``side`` gives the whole frame, through an input just large enough for the band;
+        boxes in frame pixels."""
         h, w = image.shape[:2]
-        top, bottom = self.config.band
+        if band is None:
+            band = self.band_for(h) or (0.0, 1.0)
+        top, bottom = band
         y0, y1 = int(np.floor(top * h)), max(int(np.ceil(bottom * h)), int(np.floor(top * h)) + 1)
         scale = self.config.side / max(h, w)
         self.predictor.set_img_size((_up((y1 - y0) * scale, self.stride),
@@ -221,10 +240,22 @@ class SmallBoxReadPredictor:
         return {"boxes": boxes[keep], "scores": scores[keep], "labels": labels[keep]}
 
 
+def small_reader(predictor: Any) -> SmallBoxReadPredictor | None:
+    """The :class:`SmallBoxReadPredictor` in a chain of wrappers, each holding the next as its
+    own attribute ``predictor`` (a ``BoxRefinedDetector`` around it), or None."""
+    for _ in range(8):  # wrappers are few; a cycle would be a bug
+        if isinstance(predictor, SmallBoxReadPredictor):
+            return predictor
+        predictor = vars(predictor).get("predictor") if hasattr(predictor, "__dict__") else None
+        if predictor is None:
+            return None
+    return None
+
+
 def add_small_read_arguments(parser: argparse.ArgumentParser, horizon: bool = False) -> None:
     """``--small-read SIDE``, ``--small-read-below PX`` and ``--small-read-band TOP BOTTOM`` for a
     command that runs a detector; ``horizon``: also ``--small-read-horizon ABOVE BELOW``, for a
-    command that knows its camera."""
+    command that knows its camera (a ``--camera`` record, or each image's)."""
     parser.add_argument("--small-read", type=int, default=None, metavar="SIDE",
                         help="read each frame a second time at this network side (px) and add "
                              "the boxes that are small at the model's own side: for frames much "
@@ -246,9 +277,9 @@ def add_small_read_arguments(parser: argparse.ArgumentParser, horizon: bool = Fa
                             metavar=("ABOVE", "BELOW"),
                             help="(--small-read) read again only the rows from ABOVE degrees "
                                  "over the camera's horizon to BELOW degrees under it, from the "
-                                 "camera record's pitch_deg, fy and cy: the band for any pitch "
-                                 "(the paper's camera: 15 31.3 are its rows 0.15-0.6); not with "
-                                 "--small-read-band")
+                                 "camera record's pitch_deg, fy and cy (--camera's; eval: each "
+                                 "image's): the band for any pitch (the paper's camera: 15 31.3 "
+                                 "are its rows 0.15-0.6); not with --small-read-band")
 
 
 def small_read_config(args: argparse.Namespace) -> SmallBoxReadConfig | None:

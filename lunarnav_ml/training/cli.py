@@ -48,7 +48,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="overlays in gallery.png, spread over the images (0: no gallery)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_tta_arguments(p)
-    add_small_read_arguments(p)
+    add_small_read_arguments(p, horizon=True)
+    p.add_argument("--camera", type=Path, default=None,
+                   help="(--small-read-horizon) the frames' JSON camera record, as lunarnav "
+                        "localize reads it; its pitch_deg, fy and cy place the band over the "
+                        "horizon at each frame's height")
     add_box_refiner_arguments(p, when="(after --tta or --small-read)",
                               off="write the detector's boxes as they are")
     add_box_rescorer_arguments(p)
@@ -278,6 +282,8 @@ def run_train(args: argparse.Namespace) -> int:
 def run_detect(args: argparse.Namespace) -> int:
     """Detect on the source images and write results and overlays."""
     from lunarnav_ml.eval.cli import predictor_from_args
+    from lunarnav_ml.eval.smallread import small_reader
+    from lunarnav_ml.runtime.cli import read_camera
     from lunarnav_ml.training.detect import detect_files, list_images
 
     for name in ("conf", "iou", "overlay_conf"):
@@ -293,8 +299,16 @@ def run_detect(args: argparse.Namespace) -> int:
     weights = args.weights or DEFAULT_WEIGHTS
     if args.weights is None and not weights.is_file():
         raise ConfigError(f"no --weights given and no shipped weights at {weights}")
+    read = small_read_config(args)
+    if (read is not None and read.horizon is not None) != (args.camera is not None):
+        raise ConfigError("--small-read-horizon needs --camera FILE, the frames' camera record"
+                          if args.camera is None else
+                          "--camera is read for --small-read-horizon only: give both")
+    camera = None if args.camera is None else read_camera(args.camera)
     files = list_images(args.source)
     detector = predictor_from_args(args, weights)
+    if camera is not None:
+        small_reader(detector).camera = camera
     out = detect_files(detector, files, args.out, conf_thres=args.conf, iou_thres=args.iou,
                        overlay_thres=args.overlay_conf, batch=args.batch,
                        progress=not args.quiet, gallery=args.gallery)

@@ -142,9 +142,84 @@ def test_a_band_over_the_horizon_is_read_as_rows_of_the_camera():
         SmallBoxReadConfig(640, horizon=(80.0, -60.0)).at_camera(PAPER_CAMERA, 1024)
 
 
-def test_a_band_over_the_horizon_needs_the_camera_first():
+def test_a_band_over_the_horizon_is_read_at_the_readers_camera():
+    fake = BrightSquareInCrop()
+    reader = SmallBoxReadPredictor(fake, SmallBoxReadConfig(192, below_px=30,
+                                                            horizon=(10.0, 20.0)))
+    image = np.zeros((60, 100, 3), np.uint8)
+    image[25:40, 60:90] = 255
     with pytest.raises(ConfigError, match="--small-read-horizon needs the camera's pitch"):
-        SmallBoxReadPredictor(TwoSides(), SmallBoxReadConfig(192, horizon=(15.0, 31.0)))
+        reader.predict([image])
+    assert fake.sides_run == []  # refused before any read
+    reader.camera = {"pitch_deg": 0.0, "fy": 50.0, "cy": 30.0}
+    top, bottom = reader.band_for(60)  # rows 30 - 50 tan 10 deg to 30 + 50 tan 20 deg
+    assert (top, bottom) == pytest.approx(((30 - 50 * math.tan(math.radians(10))) / 60,
+                                           (30 + 50 * math.tan(math.radians(20))) / 60))
+    (pred,) = reader.predict([image])
+    # rows 21-49 at 1.92 px a pixel: 53.8 -> 64 rows; the square read in both, kept once
+    assert fake.sides_run == [96, (64, 192)]
+    np.testing.assert_allclose(pred["boxes"], [[60, 25, 90, 40]])
+    reader.camera = {"pitch_deg": 60.0, "fy": 50.0, "cy": 30.0}  # the band over the frame
+    with pytest.raises(ConfigError, match="no row of the frame lies in the band"):
+        reader.predict([image])
+
+
+class CameraLog(SmallBoxReadPredictor):
+    """Notes the camera and the number of frames of each call."""
+
+    def predict(self, images, *args, **kwargs):
+        self.calls.append((self.camera["pitch_deg"], len(images)))
+        return super().predict(images, *args, **kwargs)
+
+
+class Outer:
+    """A wrapper around a predictor, as the box refiner's is."""
+
+    def __init__(self, predictor):
+        self.predictor = predictor
+
+    def predict(self, images, *args, **kwargs):
+        return self.predictor.predict(images, *args, **kwargs)
+
+
+def _with_cameras(gt, pitches):
+    import json
+
+    data = json.loads(gt.read_text())
+    for record, pitch in zip(data["images"], pitches, strict=True):
+        record["camera"] = {"height_m": 1.5, "pitch_deg": pitch, "roll_deg": 0.0,
+                            "fov_deg": 90.0, "baseline_m": 0.3, "fx": 48.0, "fy": 48.0,
+                            "cx": 47.5, "cy": 47.5}
+    gt.write_text(json.dumps(data))
+    return data
+
+
+def test_coco_images_are_read_in_groups_of_one_camera_each(tmp_path):
+    from lunarnav_ml.errors import InputError
+    from lunarnav_ml.eval.predict import predict_coco
+    from lunarnav_ml.eval.smallread import small_reader
+    from tests.detector_fixtures import make_coco
+
+    gt = make_coco(tmp_path / "set", n_images=5, size=96)
+    data = _with_cameras(gt, [0.0, 10.0, 0.0, 10.0, 0.0])
+    for record in data["images"]:  # one bright square on each frame, to find in both reads
+        image = np.full((96, 96), 120, np.uint8)
+        image[50:60, 20:50] = 255
+        cv2.imwrite(str(gt.parent / record["file_name"]), image)
+    reader = CameraLog(BrightSquareInCrop(), SmallBoxReadConfig(192, horizon=(5.0, 40.0)))
+    reader.calls = []
+    assert small_reader(Outer(reader)) is reader and small_reader(BrightSquareInCrop()) is None
+    results = predict_coco(Outer(reader), data, gt.parent, progress=False)
+    assert reader.calls == [(0.0, 3), (10.0, 2)]
+    assert [r["image_id"] for r in results] == [1, 2, 3, 4, 5]  # the dataset's order
+    assert all(r["bbox"] == pytest.approx([20, 50, 30, 10]) for r in results)
+    del data["images"][1]["camera"]
+    with pytest.raises(InputError, match=r"set/annotations.json: image 2 \(images/left/0001.png\) has no "
+                                         r"camera record"):
+        predict_coco(reader, data, gt.parent, origin=str(gt), progress=False)
+    data["images"][1]["camera"] = {"pitch_deg": "down"}
+    with pytest.raises(InputError, match="annotations.json: image 2 .*camera: missing key"):
+        predict_coco(reader, data, gt.parent, origin=str(gt), progress=False)
 
 
 def test_a_side_not_larger_than_the_models_own_and_tta_together_are_refused():
@@ -228,3 +303,72 @@ def test_a_bad_second_read_is_one_line_naming_the_option(tmp_path, onnx_path, ca
     err = capsys.readouterr().err.strip()
     assert "--small-read: 32 px is not larger" in err and "Traceback" not in err
     assert not (tmp_path / "bad").exists()
+
+
+def _rows(pitch, above=5.0, below=30.0):  # _with_cameras' 96 px frames: fy 48, cy 47.5
+    return ((47.5 - 48.0 * math.tan(math.radians(above + pitch))) / 96,
+            (47.5 + 48.0 * math.tan(math.radians(below - pitch))) / 96)
+
+
+def test_eval_reads_the_band_over_each_images_camera(tmp_path, onnx_path, capsys):
+    import json
+
+    from lunarnav_ml.cli import main
+    from lunarnav_ml.utils.images import read_rgb
+    from lunarnav_ml.eval.predict import to_coco_results
+    from tests.detector_fixtures import make_coco
+
+    gt = make_coco(tmp_path / "set", n_images=4, size=96)
+    flags = ["--test-gt", str(gt), "--model", str(onnx_path), "--threshold", "0.5",
+             "--no-progress", "--overlays", "0", "--no-box-refiner", "--threads", "1",
+             "--small-read", "192", "--small-read-horizon", "5", "30"]
+    assert main(["eval", *flags, "--out", str(tmp_path / "none")]) == 2  # no camera records
+    err = capsys.readouterr().err.strip()
+    assert "annotations.json: image 1 (images/left/0000.png) has no camera record" in err
+    assert "\n" not in err and not (tmp_path / "none").exists()
+    data = _with_cameras(gt, [0.0, 20.0, 0.0, 20.0])
+    assert main(["eval", *flags, "--out", str(tmp_path / "read")]) == 0
+    got = json.loads((tmp_path / "read" / "detections.json").read_text())
+    assert "(5 deg over to 30 under the horizon)" in (tmp_path / "read" / "report.md").read_text()
+    def read(pitches):  # each frame read with the band of the pitch given for it
+        out = []
+        for record, pitch in zip(data["images"], pitches, strict=True):
+            reader = load_predictor(onnx_path, 1, None, small_read=SmallBoxReadConfig(
+                192, band=_rows(pitch)))
+            (pred,) = reader.predict([read_rgb(gt.parent / record["file_name"])])
+            out += to_coco_results(pred, record["id"])
+        return [(r["image_id"], r["category_id"], *np.round(r["bbox"], 3)) for r in out]
+
+    got = [(r["image_id"], r["category_id"], *np.round(r["bbox"], 3)) for r in got]
+    assert got == read((0.0, 20.0, 0.0, 20.0))
+    assert got != read((0.0, 0.0, 0.0, 0.0))  # one camera's band for all: other boxes
+
+
+def test_detect_reads_the_band_over_its_cameras_horizon(tmp_path, onnx_path, capsys):
+    import json
+
+    from lunarnav_ml.cli import main
+    from tests.detector_fixtures import make_coco
+
+    gt = make_coco(tmp_path / "set", n_images=2, size=96)
+    camera = _with_cameras(gt, [20.0, 20.0])["images"][0]["camera"]
+    (tmp_path / "camera.json").write_text(json.dumps({"camera": camera}))
+    frames = str(gt.parent / "images" / "left")
+    flags = [frames, "--weights", str(onnx_path), "--quiet", "--gallery", "0", "--threads", "1",
+             "--no-box-refiner", "--small-read", "192"]
+    assert main(["detect", *flags, "--small-read-horizon", "5", "30", "--camera",
+                 str(tmp_path / "camera.json"), "--out", str(tmp_path / "horizon")]) == 0
+    assert main(["detect", *flags, "--small-read-band", *map(str, _rows(20.0)),
+                 "--out", str(tmp_path / "band")]) == 0
+    got, want = (json.loads((tmp_path / name / "results.json").read_text())
+                 for name in ("horizon", "band"))
+    assert got and got == want
+    capsys.readouterr()
+    for extra, says in ((["--small-read-horizon", "5", "30"], "needs --camera FILE"),
+                        (["--camera", str(tmp_path / "camera.json")],
+                         "--camera is read for --small-read-horizon only"),
+                        (["--small-read-horizon", "5", "30", "--camera", str(tmp_path / "no.json")],
+                         "no.json")):
+        assert main(["detect", *flags, *extra, "--out", str(tmp_path / "bad")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "Traceback" not in err and not (tmp_path / "bad").exists()
