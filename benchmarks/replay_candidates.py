@@ -1,0 +1,192 @@
+"""Replay a cached raw read through the box refiner (and a rescorer), with extra crater candidates.
+
+A raw read is the ``detections.json`` of ``lunarnav eval --task detection --no-box-refiner``:
+the network's boxes before the box refiner. Replaying it refines and rescores the crater boxes
+as the live read does (``BoxRefinedDetector.refine``), without running the network again; on the
+paper-mono validation quarter the replay without candidates gave the live read's figures to the
+digit. The candidates are ways to box a crater the detector found in part (BENCHMARKS.md, issue
+4: "The second read's band", session 77, and "Half-rim boxes grown to the whole crater",
+session 78); none was adopted:
+
+- ``grow-sides``: each flat crater box (width >= ``--flat`` heights) grown by ``--grow`` of its
+  width to the left, and again to the right;
+- ``grow-centre``: widened by ``--grow`` / 2 of its width on each side;
+- ``unions``: the union of two flat crater boxes that share at least ``--rows`` of their rows,
+  lie no more than ``--gap`` of the narrower width apart and together are ``--wider`` times
+  wider than either.
+
+A candidate takes its box's raw score (the higher of the two for a union) times ``--factor``.
+Only crater boxes with a raw score of at least ``--floor`` make candidates, at most ``--top`` a
+frame, the highest first. Writes COCO results for ``lunarnav eval --test-results``:
+
+    .venv/bin/python benchmarks/replay_candidates.py --gt $MV --raw RAW/detections.json \\
+        --candidates grow-sides --factor 0.3 \\
+        --rescorer lunarnav_ml/weights/box_rescorer_small_read.onnx --out R/detections.json
+    .venv/bin/lunarnav eval --task detection --gt $MV --test-results R/detections.json \\
+        --val-gt $MV --val-results R/detections.json --out R/eval
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lunarnav_ml.data.coco import read_coco, read_image
+from lunarnav_ml.errors import REPORTED_ERRORS, ConfigError, InputError
+from lunarnav_ml.eval.predict import read_coco_results, to_coco_results
+from lunarnav_ml.geometry.boxrefine import CRATER_LABEL, BoxRefinedDetector, BoxRefiner
+from lunarnav_ml.utils import atomic
+
+CANDIDATES = ("none", "grow-sides", "grow-centre", "grow-both", "unions")
+
+
+def flat_boxes(pred: dict[str, np.ndarray], args: argparse.Namespace
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's flat crater boxes (xyxy) that make candidates, and their raw scores: score >=
+    ``floor``, the ``top`` highest, width >= ``flat`` heights."""
+    boxes, scores = pred["boxes"], pred["scores"]
+    idx = np.nonzero((pred["labels"] == CRATER_LABEL) & (scores >= args.floor))[0]
+    idx = idx[np.argsort(-scores[idx], kind="stable")][:args.top]
+    b = boxes[idx]
+    flat = (b[:, 2] - b[:, 0]) >= args.flat * (b[:, 3] - b[:, 1])
+    return b[flat], scores[idx][flat]
+
+
+def grown(b: np.ndarray, s: np.ndarray, mode: str, grow: float) -> tuple[np.ndarray, np.ndarray]:
+    """Flat boxes ``b`` (xyxy) grown: ``sides`` by ``grow`` widths to the left and to the right,
+    ``centre`` by ``grow`` / 2 on each side, ``both``; each with its box's score."""
+    w = b[:, 2] - b[:, 0]
+    out = []
+    if mode in ("sides", "both"):
+        out += [np.column_stack([b[:, 0] - grow * w, b[:, 1:]]),
+                np.column_stack([b[:, :2], b[:, 2] + grow * w, b[:, 3]])]
+    if mode in ("centre", "both"):
+        out += [np.column_stack([b[:, 0] - grow * w / 2, b[:, 1], b[:, 2] + grow * w / 2,
+                                 b[:, 3]])]
+    return np.concatenate(out).reshape(-1, 4), np.tile(s, len(out))
+
+
+def unions(b: np.ndarray, s: np.ndarray, rows: float, gap: float, wider: float
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """The unions of pairs of flat boxes ``b`` (xyxy) side by side (see the module's doc), each
+    with the higher of the two scores."""
+    out_b, out_s = [], []
+    w = b[:, 2] - b[:, 0]
+    for i in range(len(b)):
+        for j in range(i + 1, len(b)):
+            shared = min(b[i, 3], b[j, 3]) - max(b[i, 1], b[j, 1])
+            span = max(b[i, 3], b[j, 3]) - min(b[i, 1], b[j, 1])
+            apart = max(b[i, 0], b[j, 0]) - min(b[i, 2], b[j, 2])  # > 0: a gap between them
+            x0, x1 = min(b[i, 0], b[j, 0]), max(b[i, 2], b[j, 2])
+            if shared >= rows * span and apart <= gap * min(w[i], w[j]) \
+                    and x1 - x0 >= wider * max(w[i], w[j]):
+                out_b.append([x0, min(b[i, 1], b[j, 1]), x1, max(b[i, 3], b[j, 3])])
+                out_s.append(max(s[i], s[j]))
+    return np.array(out_b, np.float64).reshape(-1, 4), np.array(out_s, np.float32)
+
+
+def candidates(pred: dict[str, np.ndarray], shape: tuple[int, ...], args: argparse.Namespace
+               ) -> dict[str, np.ndarray]:
+    """One frame's raw read with ``args.candidates`` added as crater boxes (clipped to the
+    frame, scores x ``factor``)."""
+    if args.candidates == "none":
+        return pred
+    b, s = flat_boxes(pred, args)
+    if args.candidates == "unions":
+        extra, extra_s = unions(b, s, args.rows, args.gap, args.wider)
+    else:
+        extra, extra_s = grown(b, s, args.candidates.split("-")[1], args.grow)
+    h, w = shape[:2]
+    extra = np.clip(extra, 0.0, [w, h, w, h])
+    return {"boxes": np.concatenate([pred["boxes"], extra]),
+            "scores": np.concatenate([pred["scores"], extra_s * args.factor]).astype(np.float32),
+            "labels": np.concatenate([pred["labels"],
+                                      np.full(len(extra), CRATER_LABEL, np.int64)])}
+
+
+def raw_reads(path: Path) -> dict[int, dict[str, np.ndarray]]:
+    """A results file as per-image predictions (xyxy boxes, scores, labels)."""
+    per: dict[int, list[dict]] = {}
+    for det in read_coco_results(path):
+        per.setdefault(det["image_id"], []).append(det)
+    out = {}
+    for image_id, dets in per.items():
+        xywh = np.array([d["bbox"] for d in dets], np.float64).reshape(-1, 4)
+        out[image_id] = {"boxes": np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]),
+                         "scores": np.array([d["score"] for d in dets], np.float32),
+                         "labels": np.array([d["category_id"] for d in dets], np.int64)}
+    return out
+
+
+def replay(gt: Path, raw: Path, args: argparse.Namespace, log=print) -> list[dict]:
+    """COCO results of the raw read ``raw`` of the images of ``gt``, candidates added, through
+    the box refiner (and ``args.rescorer``), as ``lunarnav eval`` would score them."""
+    _, records = read_coco(gt)
+    reads = raw_reads(raw)
+    unknown = sorted(set(reads) - {r.image_id for r in records})
+    if unknown:
+        raise InputError(f"{raw}: image_id {unknown[0]} is not an image of {gt}")
+    rescorer = None
+    if args.rescorer is not None:
+        from lunarnav_ml.geometry.boxrescore import BoxRescorer
+
+        rescorer = BoxRescorer(args.rescorer)
+    detector = BoxRefinedDetector(None, BoxRefiner(args.box_refiner), rescorer)
+    empty = {"boxes": np.zeros((0, 4)), "scores": np.zeros(0, np.float32),
+             "labels": np.zeros(0, np.int64)}
+    results, added, t0 = [], 0, time.perf_counter()
+    for k, record in enumerate(records):
+        image = read_image(record)
+        pred = reads.get(record.image_id, empty)
+        more = candidates(pred, image.shape, args)
+        added += len(more["scores"]) - len(pred["scores"])
+        out = detector.above(detector.refine(image, more, args.iou), args.conf)
+        results += to_coco_results(out, record.image_id)
+        if (k + 1) % 100 == 0 or k + 1 == len(records):
+            log(f"{k + 1}/{len(records)} frames, {added} candidates added, "
+                f"{time.perf_counter() - t0:.0f} s")
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--gt", type=Path, required=True, help="the read set's COCO annotations")
+    p.add_argument("--raw", type=Path, required=True,
+                   help="its raw read: detections.json of `lunarnav eval --no-box-refiner`")
+    p.add_argument("--out", type=Path, required=True, help="COCO results file to write")
+    p.add_argument("--candidates", choices=CANDIDATES, default="none")
+    p.add_argument("--box-refiner", type=Path, default=None, help="default: the shipped one")
+    p.add_argument("--rescorer", type=Path, default=None, help="a box rescorer's ONNX file")
+    p.add_argument("--flat", type=float, default=3.0, help="flat: width >= this x height")
+    p.add_argument("--grow", type=float, default=1.0, help="(grow-*) widths added")
+    p.add_argument("--rows", type=float, default=0.5, help="(unions) rows shared, at least")
+    p.add_argument("--gap", type=float, default=0.25, help="(unions) apart, at most")
+    p.add_argument("--wider", type=float, default=1.2, help="(unions) union's width, at least")
+    p.add_argument("--floor", type=float, default=0.05, help="raw score of a box that grows")
+    p.add_argument("--top", type=int, default=30, help="boxes a frame that may make candidates")
+    p.add_argument("--factor", type=float, default=1.0, help="a candidate's score factor")
+    p.add_argument("--conf", type=float, default=0.001, help="score floor of the results")
+    p.add_argument("--iou", type=float, default=0.6, help="NMS IoU after the refiner")
+    args = p.parse_args(argv)
+    try:
+        for name in ("flat", "grow", "rows", "wider", "factor"):
+            if not getattr(args, name) > 0:  # NaN fails too
+                raise ConfigError(f"--{name}: expected a positive number, got "
+                                  f"{getattr(args, name)}")
+        if args.top < 1:
+            raise ConfigError(f"--top: expected at least 1, got {args.top}")
+        results = replay(args.gt, args.raw, args, log=lambda line: print(line, flush=True))
+        atomic.write_json(args.out, results, indent=None)
+    except REPORTED_ERRORS as err:
+        print(f"replay_candidates: error: {err}", file=sys.stderr)
+        return 2
+    print(f"{len(results)} results -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

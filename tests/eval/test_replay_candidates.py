@@ -1,0 +1,94 @@
+"""benchmarks/replay_candidates.py: the replay of a raw read is the live read, and the candidates
+are where they should be."""
+
+import json
+from argparse import Namespace
+
+import numpy as np
+import pytest
+
+from lunarnav_ml.eval.predict import predict_coco
+from lunarnav_ml.geometry.boxrefine import BoxRefinedDetector, BoxRefiner
+from tests.bench_scripts import load_script
+from tests.detector_fixtures import make_coco
+
+replay = load_script("replay_candidates")
+
+
+def _args(**kw):
+    base = dict(candidates="none", flat=3.0, grow=1.0, rows=0.5, gap=0.25, wider=1.2,
+                floor=0.05, top=30, factor=1.0)
+    return Namespace(**{**base, **kw})
+
+
+def _pred(rows):
+    rows = np.array(rows, np.float64).reshape(-1, 6)
+    return {"boxes": rows[:, :4], "scores": rows[:, 4].astype(np.float32),
+            "labels": rows[:, 5].astype(np.int64)}
+
+
+def test_flat_boxes_grow_and_halves_join():
+    pred = _pred([[100, 50, 160, 60, 0.9, 1],    # flat: 60 x 10
+                  [150, 51, 220, 61, 0.5, 1],    # flat, its other half
+                  [10, 10, 30, 30, 0.95, 1],     # square: no candidates
+                  [300, 50, 360, 60, 0.9, 2],    # a rock
+                  [400, 50, 460, 60, 0.01, 1]])  # under the floor
+    sides = replay.candidates(pred, (200, 500), _args(candidates="grow-sides", factor=0.5))
+    np.testing.assert_allclose(sides["boxes"][5:], [[40, 50, 160, 60], [80, 51, 220, 61],
+                                                    [100, 50, 220, 60], [150, 51, 290, 61]])
+    np.testing.assert_allclose(sides["scores"][5:], [0.45, 0.25, 0.45, 0.25])
+    assert sides["labels"][5:].tolist() == [1] * 4
+    centre = replay.candidates(pred, (200, 500), _args(candidates="grow-centre"))
+    np.testing.assert_allclose(centre["boxes"][5:], [[70, 50, 190, 60], [115, 51, 255, 61]])
+    both = replay.candidates(pred, (200, 500), _args(candidates="unions"))
+    np.testing.assert_allclose(both["boxes"][5:], [[100, 50, 220, 61]])
+    np.testing.assert_allclose(both["scores"][5:], [0.9])
+    clipped = replay.candidates(pred, (200, 200), _args(candidates="grow-sides"))
+    assert clipped["boxes"][5:, [0, 2]].max() <= 200 and clipped["boxes"][5:].min() >= 0
+    assert replay.candidates(pred, (200, 500), _args()) is pred
+    top1 = replay.candidates(pred, (200, 500), _args(candidates="grow-sides", top=1))
+    assert len(top1["scores"]) == 5  # the top box is the square: nothing grows
+
+
+def test_the_replay_of_a_raw_read_is_the_live_read(tmp_path, onnx_path, capsys):
+    from lunarnav_ml.runtime import OnnxDetector
+
+    gt = make_coco(tmp_path / "set", n_images=3, size=96)
+    data = json.loads(gt.read_text())
+    network = OnnxDetector(onnx_path, threads=1)
+    live = predict_coco(BoxRefinedDetector(network, BoxRefiner()), data, gt.parent,
+                        progress=False)
+    raw = predict_coco(network, data, gt.parent, conf_thres=1e-6, progress=False)
+    (tmp_path / "raw.json").write_text(json.dumps(raw))
+    out = tmp_path / "r" / "replay.json"
+    assert replay.main(["--gt", str(gt), "--raw", str(tmp_path / "raw.json"), "--out",
+                        str(out)]) == 0
+    got = json.loads(out.read_text())
+
+    def rows(results):
+        return sorted((r["image_id"], r["category_id"], round(r["score"], 4),
+                       *np.round(r["bbox"], 2)) for r in results)
+
+    assert live and rows(got) == rows(live)
+    assert replay.main(["--gt", str(gt), "--raw", str(tmp_path / "raw.json"), "--out",
+                        str(tmp_path / "g.json"), "--candidates", "grow-sides",
+                        "--flat", "0.1"]) == 0
+    assert "candidates added" in capsys.readouterr().out
+    assert len(json.loads((tmp_path / "g.json").read_text())) >= len(got)
+
+
+@pytest.mark.parametrize("extra, says", [(["--grow", "nan"], "--grow"),
+                                         (["--top", "0"], "--top"),
+                                         (["--raw", "missing.json"], "missing.json")])
+def test_bad_input_is_one_line(tmp_path, capsys, extra, says):
+    gt = make_coco(tmp_path / "set", n_images=1, size=96)
+    (tmp_path / "raw.json").write_text("[]")
+    argv = ["--gt", str(gt), "--raw", str(tmp_path / "raw.json"), "--out",
+            str(tmp_path / "o.json")]
+    if extra[0] == "--raw":
+        argv[3] = str(tmp_path / extra[1])
+    else:
+        argv += extra
+    assert replay.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert says in err and "\n" not in err and not (tmp_path / "o.json").exists()
