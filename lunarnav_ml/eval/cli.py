@@ -272,6 +272,10 @@ def run_detection(args: argparse.Namespace) -> int:
             from lunarnav_ml.geometry.boxrefine import refined_by
 
             notes.append(refined_by(refiner.path, refiner.has_quality))
+            if model().rescorer is not None:
+                from lunarnav_ml.geometry.boxrescore import rescored_by
+
+                notes.append(rescored_by(model().rescorer.path))
         write_report(metrics, work, f"Detection report: {args.test_gt}"
                      + (f" ({'; '.join(notes)})" if notes else ""))
         write_overlays(gt, results, threshold, Path(args.test_gt).parent, work / "overlays",

@@ -41,6 +41,12 @@ def test_crater_boxes_refined_by_default_and_said_in_the_report(tmp_path, onnx_p
         runs[name] = json.loads((tmp_path / name / "detections.json").read_text())
     title = (tmp_path / "on" / "report.md").read_text().splitlines()[0]
     assert title.endswith("(crater boxes refined and rescored by the shipped box refiner)")
+    from lunarnav_ml.training.cli import DEFAULT_WEIGHTS
+
+    assert main([*common[:4], str(DEFAULT_WEIGHTS), *common[5:], "--box-rescorer", "--out",
+                 str(tmp_path / "rescored")]) == 0
+    title = (tmp_path / "rescored" / "report.md").read_text().splitlines()[0]
+    assert title.endswith("shipped box refiner; scored by the shipped box rescorer)")
     assert (tmp_path / "off" / "report.md").read_text().splitlines()[0].endswith("annotations.json")
     craters = [r for r in runs["on"] if r["category_id"] == 1]
     assert craters and all(r.get("box_refined") for r in craters)

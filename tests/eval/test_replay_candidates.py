@@ -16,8 +16,8 @@ replay = load_script("replay_candidates")
 
 
 def _args(**kw):
-    base = dict(candidates="none", flat=3.0, grow=1.0, rows=0.5, gap=0.25, wider=1.2,
-                floor=0.05, top=30, factor=1.0)
+    base = {"candidates": "none", "flat": 3.0, "grow": 1.0, "rows": 0.5, "gap": 0.25,
+            "wider": 1.2, "floor": 0.05, "top": 30, "factor": 1.0}
     return Namespace(**{**base, **kw})
 
 

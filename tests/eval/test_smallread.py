@@ -314,8 +314,8 @@ def test_eval_reads_the_band_over_each_images_camera(tmp_path, onnx_path, capsys
     import json
 
     from lunarnav_ml.cli import main
-    from lunarnav_ml.utils.images import read_rgb
     from lunarnav_ml.eval.predict import to_coco_results
+    from lunarnav_ml.utils.images import read_rgb
     from tests.detector_fixtures import make_coco
 
     gt = make_coco(tmp_path / "set", n_images=4, size=96)
