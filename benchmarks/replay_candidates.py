@@ -17,7 +17,9 @@ session 78); none was adopted:
 
 A candidate takes its box's raw score (the higher of the two for a union) times ``--factor``.
 Only crater boxes with a raw score of at least ``--floor`` make candidates, at most ``--top`` a
-frame, the highest first. Writes COCO results for ``lunarnav eval --test-results``:
+frame, the highest first. ``--join RAW2`` joins a second raw read of the same set first (its
+boxes and the first read's, per-class NMS at ``--iou``, at most 300 a frame, as the second read
+of ``--small-read`` joins its boxes). Writes COCO results for ``lunarnav eval --test-results``:
 
     .venv/bin/python benchmarks/replay_candidates.py --gt $MV --raw RAW/detections.json \\
         --candidates grow-sides --factor 0.3 \\
@@ -108,11 +110,23 @@ def candidates(pred: dict[str, np.ndarray], shape: tuple[int, ...], args: argpar
                                       np.full(len(extra), CRATER_LABEL, np.int64)])}
 
 
-def raw_reads(path: Path) -> dict[int, dict[str, np.ndarray]]:
-    """A results file as per-image predictions (xyxy boxes, scores, labels)."""
+def raw_reads(*paths: Path, iou: float = 0.6, max_det: int = 300
+              ) -> dict[int, dict[str, np.ndarray]]:
+    """Results files as per-image predictions (xyxy boxes, scores, labels); two or more files
+    (reads of one set) joined: per-class NMS at ``iou``, at most ``max_det`` a frame."""
     per: dict[int, list[dict]] = {}
-    for det in read_coco_results(path):
-        per.setdefault(det["image_id"], []).append(det)
+    for path in paths:
+        for det in read_coco_results(path):
+            per.setdefault(det["image_id"], []).append(det)
+    if len(paths) > 1:
+        from lunarnav_ml.runtime.nms import batched_nms
+
+        for image_id, dets in per.items():
+            xywh = np.array([d["bbox"] for d in dets], np.float32).reshape(-1, 4)
+            keep = batched_nms(np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]),
+                               np.array([d["score"] for d in dets], np.float32),
+                               np.array([d["category_id"] for d in dets], np.int64), iou)
+            per[image_id] = [dets[k] for k in keep[:max_det]]
     out = {}
     for image_id, dets in per.items():
         xywh = np.array([d["bbox"] for d in dets], np.float64).reshape(-1, 4)
@@ -123,13 +137,16 @@ def raw_reads(path: Path) -> dict[int, dict[str, np.ndarray]]:
 
 
 def replay(gt: Path, raw: Path, args: argparse.Namespace, log=print) -> list[dict]:
-    """COCO results of the raw read ``raw`` of the images of ``gt``, candidates added, through
-    the box refiner (and ``args.rescorer``), as ``lunarnav eval`` would score them."""
+    """COCO results of the raw read ``raw`` of the images of ``gt`` (joined with
+    ``args.join``, when given), candidates added, through the box refiner (and
+    ``args.rescorer``), as ``lunarnav eval`` would score them."""
     _, records = read_coco(gt)
-    reads = raw_reads(raw)
+    files = [raw] + ([args.join] if getattr(args, "join", None) is not None else [])
+    reads = raw_reads(*files, iou=args.iou)
     unknown = sorted(set(reads) - {r.image_id for r in records})
     if unknown:
-        raise InputError(f"{raw}: image_id {unknown[0]} is not an image of {gt}")
+        raise InputError(f"{' or '.join(map(str, files))}: image_id {unknown[0]} is not an "
+                         f"image of {gt}")
     rescorer = None
     if args.rescorer is not None:
         from lunarnav_ml.geometry.boxrescore import BoxRescorer
@@ -158,6 +175,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--raw", type=Path, required=True,
                    help="its raw read: detections.json of `lunarnav eval --no-box-refiner`")
     p.add_argument("--out", type=Path, required=True, help="COCO results file to write")
+    p.add_argument("--join", type=Path, default=None,
+                   help="a second raw read of the set, joined to the first")
     p.add_argument("--candidates", choices=CANDIDATES, default="none")
     p.add_argument("--box-refiner", type=Path, default=None, help="default: the shipped one")
     p.add_argument("--rescorer", type=Path, default=None, help="a box rescorer's ONNX file")

@@ -70,6 +70,20 @@ def test_the_replay_of_a_raw_read_is_the_live_read(tmp_path, onnx_path, capsys):
                        *np.round(r["bbox"], 2)) for r in results)
 
     assert live and rows(got) == rows(live)
+    # a read joined with itself is that read joined with nothing (the NMS of a join also takes
+    # out the boxes that clipping to the frame brought over 0.6 IoU); another read adds boxes
+    (tmp_path / "none.json").write_text("[]")
+    joined = replay.raw_reads(tmp_path / "raw.json", tmp_path / "raw.json")
+    alone = replay.raw_reads(tmp_path / "raw.json", tmp_path / "none.json")
+    assert joined.keys() == alone.keys() and all(
+        sorted(map(tuple, joined[k]["boxes"])) == sorted(map(tuple, alone[k]["boxes"]))
+        for k in alone)
+    other = [{**r, "bbox": [r["bbox"][0] + 40, *r["bbox"][1:]], "score": r["score"] / 2}
+             for r in raw]
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    assert replay.main(["--gt", str(gt), "--raw", str(tmp_path / "raw.json"), "--join",
+                        str(tmp_path / "other.json"), "--out", str(tmp_path / "j.json")]) == 0
+    assert len(json.loads((tmp_path / "j.json").read_text())) > len(got)
     assert replay.main(["--gt", str(gt), "--raw", str(tmp_path / "raw.json"), "--out",
                         str(tmp_path / "g.json"), "--candidates", "grow-sides",
                         "--flat", "0.1"]) == 0
