@@ -93,6 +93,7 @@ def _geometric_tables(gt: dict[str, Any], match: MatchResult) -> dict[str, Any]:
     tables: dict[str, Any] = {
         "crater_pd_D5_within20m": atomic.finite_or_none(key_set.pd),
         "n_craters_D5_within20m": int(key_set.hit.size),
+        "crater_pd_D5_within20m_ci95": pd_interval(int(key_set.hit.sum()), int(key_set.hit.size)),
         "box_precision_D5_within20m": box_precision(key_set),
         "pd_vs_range": {
             f"{lo:g}-{hi:g}": pd_by(subset(match, (diam >= lo) & (diam < hi)), "near_rim_range_m",
@@ -108,6 +109,18 @@ def _geometric_tables(gt: dict[str, Any], match: MatchResult) -> dict[str, Any]:
         tables["pd_vs_sun_zenith"] = pd_by(near, "sun_zenith_deg", ZENITH_EDGES, zen)
         tables["pd_vs_sun_azimuth"] = pd_by(near, "sun_azimuth_deg", AZIMUTH_EDGES, az)
     return tables
+
+
+def pd_interval(detected: int, n: int) -> list[float] | None:
+    """The 95 % Wilson score interval of a Pd of ``detected`` in ``n`` (scipy's
+    ``binomtest``), [low, high]; None for no craters. It counts each crater as an independent
+    trial; craters of one frame share its light and terrain, so the true spread is wider."""
+    if n == 0:
+        return None
+    from scipy.stats import binomtest
+
+    ci = binomtest(detected, n).proportion_ci(confidence_level=0.95, method="wilson")
+    return [float(ci.low), float(ci.high)]
 
 
 def _fold_azimuth(az: float) -> float:
@@ -141,8 +154,11 @@ def render_markdown(metrics: dict[str, Any], title: str) -> str:
               f"(n = {metrics['n_craters']})"),
               f"- false alarms per image: {metrics['false_alarms_per_image']:.3f}"]
     if "crater_pd_D5_within20m" in metrics:
+        ci = metrics.get("crater_pd_D5_within20m_ci95")
         lines.append(f"- craters D >= 5 m, near rim <= 20 m: Pd {_fmt(metrics['crater_pd_D5_within20m'])}"
-                     f" (n = {metrics['n_craters_D5_within20m']})")
+                     f" (n = {metrics['n_craters_D5_within20m']}"
+                     + ("" if ci is None else f"; 95 % interval {ci[0]:.3f}-{ci[1]:.3f}, Wilson, "
+                        "craters counted as independent") + ")")
         lines += ["", "## Pd vs near-rim range", ""] + _range_table(metrics["pd_vs_range"])
     if metrics.get("labels_predate_overprint_rule"):
         lines += ["", PREDATE_NOTE]

@@ -1,5 +1,7 @@
 """Known-answer tests for COCO AP and the paper's Pd / false-alarm metrics."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -114,6 +116,16 @@ def test_pd_bins_and_report():
     assert [(r["n"], r["pd"]) for r in rows] == [(1, 1.0), (1, 0.0)]
     metrics = detection_metrics(gt, results, 0.5)
     assert metrics["crater_pd_D5_within20m"] == pytest.approx(0.5)
+    low, high = metrics["crater_pd_D5_within20m_ci95"]  # 1 of 2: Wilson's closed form
+    z = 1.959963984540054
+    centre, half = (1 + z * z / 2) / (2 + z * z), z * math.sqrt(0.25 * 2 + z * z / 4) / (2 + z * z)
+    assert (low, high) == pytest.approx((centre - half, centre + half))
+    assert "; 95 % interval 0.095-0.905, Wilson" in render_markdown(metrics, "t")
+    from lunarnav_ml.eval.report import pd_interval
+
+    assert pd_interval(0, 0) is None
+    low, high = pd_interval(292, 324)  # session 77's key craters on the mono quarter
+    assert low < 292 / 324 < high and high - low == pytest.approx(0.065, abs=0.005)
     assert metrics["pd_vs_sun_azimuth"][2]["n"] == 2  # 300 deg folds to 60 deg
     text = render_markdown(metrics, "t")
     assert "| crater |" in text and "Pd vs near-rim range" in text
