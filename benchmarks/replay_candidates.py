@@ -114,25 +114,23 @@ def raw_reads(*paths: Path, iou: float = 0.6, max_det: int = 300
               ) -> dict[int, dict[str, np.ndarray]]:
     """Results files as per-image predictions (xyxy boxes, scores, labels); two or more files
     (reads of one set) joined: per-class NMS at ``iou``, at most ``max_det`` a frame."""
+    from lunarnav_ml.runtime.nms import batched_nms
+
     per: dict[int, list[dict]] = {}
     for path in paths:
         for det in read_coco_results(path):
             per.setdefault(det["image_id"], []).append(det)
-    if len(paths) > 1:
-        from lunarnav_ml.runtime.nms import batched_nms
-
-        for image_id, dets in per.items():
-            xywh = np.array([d["bbox"] for d in dets], np.float32).reshape(-1, 4)
-            keep = batched_nms(np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]),
-                               np.array([d["score"] for d in dets], np.float32),
-                               np.array([d["category_id"] for d in dets], np.int64), iou)
-            per[image_id] = [dets[k] for k in keep[:max_det]]
     out = {}
     for image_id, dets in per.items():
         xywh = np.array([d["bbox"] for d in dets], np.float64).reshape(-1, 4)
-        out[image_id] = {"boxes": np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]),
-                         "scores": np.array([d["score"] for d in dets], np.float32),
-                         "labels": np.array([d["category_id"] for d in dets], np.int64)}
+        pred = {"boxes": np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]),
+                "scores": np.array([d["score"] for d in dets], np.float32),
+                "labels": np.array([d["category_id"] for d in dets], np.int64)}
+        if len(paths) > 1:  # in float32, as the second read's own merge
+            keep = batched_nms(pred["boxes"].astype(np.float32), pred["scores"],
+                               pred["labels"], iou)[:max_det]
+            pred = {k: v[keep] for k, v in pred.items()}
+        out[image_id] = pred
     return out
 
 
@@ -141,7 +139,7 @@ def replay(gt: Path, raw: Path, args: argparse.Namespace, log=print) -> list[dic
     ``args.join``, when given), candidates added, through the box refiner (and
     ``args.rescorer``), as ``lunarnav eval`` would score them."""
     _, records = read_coco(gt)
-    files = [raw] + ([args.join] if getattr(args, "join", None) is not None else [])
+    files = [raw] + ([args.join] if args.join is not None else [])
     reads = raw_reads(*files, iou=args.iou)
     unknown = sorted(set(reads) - {r.image_id for r in records})
     if unknown:

@@ -206,13 +206,11 @@ class SmallBoxReadPredictor:
         return self.config.at_camera(self.camera, height).band
 
     def read_band(self, image: np.ndarray, conf_thres: float, iou_thres: float, max_det: int,
-                  band: tuple[float, float] | None = None) -> dict[str, np.ndarray]:
-        """The second read of one frame's band of rows (default :meth:`band_for`'s), at the
-        scale ``side`` gives the whole frame, through an input just large enough for the band;
-        boxes in frame pixels."""
+                  band: tuple[float, float]) -> dict[str, np.ndarray]:
+        """The second read of one frame's ``band`` of rows (:meth:`band_for`'s), at the scale
+        ``side`` gives the whole frame, through an input just large enough for the band; boxes
+        in frame pixels."""
         h, w = image.shape[:2]
-        if band is None:
-            band = self.band_for(h) or (0.0, 1.0)
         top, bottom = band
         y0, y1 = int(np.floor(top * h)), max(int(np.ceil(bottom * h)), int(np.floor(top * h)) + 1)
         scale = self.config.side / max(h, w)
