@@ -93,7 +93,8 @@ def generate_dataset(out_dir: str | Path, n_images: int | None = None, seed: int
 
     Returns:
         ``annotations.json`` once every item of the run exists (always for shard 0/1),
-        otherwise this shard's ``annotations.shard-k-of-n.json``.
+        otherwise this shard's ``annotations.shard-k-of-n.json``. A sharded run writes its
+        shard's file even when it finishes the set, so that each shard can be read alone.
     """
     cfg = config if config is not None else SynthConfig()
     if not isinstance(cfg, SynthConfig):
@@ -244,13 +245,17 @@ def write_item(root: Path, index: int, seed: int, spec: SceneSpec, out: Rendered
 
 
 def _finish(root: Path, total: int, k: int, n: int) -> Path:
-    """Write the shard's COCO file, and annotations.json when all items are present."""
+    """Write the shard's COCO file (a sharded run's, or a run of some items), and
+    annotations.json when all items are present; the latter's path then, else the shard's."""
     done = [i for i in range(total) if (root / "items" / f"{i:06d}.json").exists()]
+    shard_file = None
+    if n > 1 or len(done) < total:  # the last shard to finish still reads as one shard
+        shard_file = atomic.write_json(root / f"annotations.shard-{k}-of-{n}.json",
+                                       _coco(root, [i for i in done if i % n == k]),
+                                       indent=None)
     if len(done) == total:
         return merge_annotations(root, total)
-    mine = [i for i in done if i % n == k]
-    return atomic.write_json(root / f"annotations.shard-{k}-of-{n}.json",
-                             _coco(root, mine), indent=None)
+    return shard_file
 
 
 def merge_annotations(root: str | Path, total: int | None = None) -> Path:

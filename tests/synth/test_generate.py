@@ -57,6 +57,8 @@ def test_shards_and_resume_equal_one_run(tmp_path, small_cfg):
     assert merged.name == "annotations.json"
     assert rec.stat().st_mtime_ns == mtime  # finished item skipped
     assert merged.read_bytes() == whole.read_bytes()
+    last = json.loads((tmp_path / "sharded" / "annotations.shard-0-of-2.json").read_text())
+    assert [im["id"] for im in last["images"]] == [1, 3]  # the shard that finished the set
 
 
 def test_items_subset_renders_only_those_with_the_same_bytes(tmp_path, small_cfg):
