@@ -15,6 +15,10 @@ session 78); none was adopted:
   lie no more than ``--gap`` of the narrower width apart and together are ``--wider`` times
   wider than either.
 
+``--refine twice`` runs the box refiner again on its own boxes (a crop around the refined box);
+``--quality refined`` scores each box with the quality the refiner gives the once-refined box
+instead of the detector's box (session 79's "The box refiner run twice"; not adopted).
+
 A candidate takes its box's raw score (the higher of the two for a union) times ``--factor``.
 Only crater boxes with a raw score of at least ``--floor`` make candidates, at most ``--top`` a
 frame, the highest first. ``--join RAW2`` joins a second raw read of the same set first (its
@@ -134,6 +138,26 @@ def raw_reads(*paths: Path, iou: float = 0.6, max_det: int = 300
     return out
 
 
+class TwoPassRefiner:
+    """A :class:`BoxRefiner` run a second time on its own boxes: ``refine`` "twice" returns the
+    second pass's edges ("once": the first's); ``quality`` "refined" scores each box with the
+    quality of the once-refined box, the second pass's input ("detector": the first pass's, of
+    the detector's box, as the shipped path does)."""
+
+    def __init__(self, refiner: BoxRefiner, refine: str, quality: str) -> None:
+        self.refiner, self.refine, self.quality = refiner, refine, quality
+        self.has_quality = refiner.has_quality
+
+    def refine_scored(self, gray: np.ndarray, boxes_xywh: np.ndarray, quality: bool = True
+                      ) -> tuple[np.ndarray, np.ndarray | None]:
+        once, q_detector = self.refiner.refine_scored(gray, boxes_xywh, quality)
+        if len(once) == 0:
+            return once, q_detector
+        twice, q_refined = self.refiner.refine_scored(gray, once, quality)
+        return (twice if self.refine == "twice" else once,
+                q_refined if self.quality == "refined" else q_detector)
+
+
 def replay(gt: Path, raw: Path, args: argparse.Namespace, log=print) -> list[dict]:
     """COCO results of the raw read ``raw`` of the images of ``gt`` (joined with
     ``args.join``, when given), candidates added, through the box refiner (and
@@ -150,7 +174,11 @@ def replay(gt: Path, raw: Path, args: argparse.Namespace, log=print) -> list[dic
         from lunarnav_ml.geometry.boxrescore import BoxRescorer
 
         rescorer = BoxRescorer(args.rescorer)
-    detector = BoxRefinedDetector(None, BoxRefiner(args.box_refiner), rescorer)
+    refiner = BoxRefiner(args.box_refiner)
+    refine, quality = getattr(args, "refine", "once"), getattr(args, "quality", "detector")
+    if (refine, quality) != ("once", "detector"):
+        refiner = TwoPassRefiner(refiner, refine, quality)
+    detector = BoxRefinedDetector(None, refiner, rescorer)
     empty = {"boxes": np.zeros((0, 4)), "scores": np.zeros(0, np.float32),
              "labels": np.zeros(0, np.int64)}
     results, added, t0 = [], 0, time.perf_counter()
@@ -178,6 +206,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--candidates", choices=CANDIDATES, default="none")
     p.add_argument("--box-refiner", type=Path, default=None, help="default: the shipped one")
     p.add_argument("--rescorer", type=Path, default=None, help="a box rescorer's ONNX file")
+    p.add_argument("--refine", choices=("once", "twice"), default="once",
+                   help="box refiner passes over each crater box")
+    p.add_argument("--quality", choices=("detector", "refined"), default="detector",
+                   help="the quality that scores a box: of the detector's box, or of the "
+                        "once-refined box")
     p.add_argument("--flat", type=float, default=3.0, help="flat: width >= this x height")
     p.add_argument("--grow", type=float, default=1.0, help="(grow-*) widths added")
     p.add_argument("--rows", type=float, default=0.5, help="(unions) rows shared, at least")

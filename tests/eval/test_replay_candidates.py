@@ -50,6 +50,28 @@ def test_flat_boxes_grow_and_halves_join():
     assert len(top1["scores"]) == 5  # the top box is the square: nothing grows
 
 
+class _Shift:
+    """A refiner that moves each box 10 px right, with the box's x / 100 as its quality."""
+    has_quality = True
+
+    def refine_scored(self, gray, boxes, quality=True):
+        out = np.asarray(boxes, np.float64).copy()
+        out[:, 0] += 10
+        return out, (np.asarray(boxes)[:, 0] / 100).astype(np.float32)
+
+
+@pytest.mark.parametrize("refine, quality, x, q", [("twice", "detector", 70, 0.5),
+                                                   ("twice", "refined", 70, 0.6),
+                                                   ("once", "refined", 60, 0.6),
+                                                   ("once", "detector", 60, 0.5)])
+def test_two_passes_of_the_refiner(refine, quality, x, q):
+    two = replay.TwoPassRefiner(_Shift(), refine, quality)
+    boxes, qual = two.refine_scored(np.zeros((8, 8), np.uint8), np.array([[50.0, 5, 20, 4]]))
+    assert boxes[0, 0] == x and qual[0] == pytest.approx(q)
+    empty, _ = two.refine_scored(np.zeros((8, 8), np.uint8), np.zeros((0, 4)))
+    assert empty.shape == (0, 4)
+
+
 def test_the_replay_of_a_raw_read_is_the_live_read(tmp_path, onnx_path, capsys):
     from lunarnav_ml.runtime import OnnxDetector
 
