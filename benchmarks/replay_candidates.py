@@ -21,9 +21,9 @@ instead of the detector's box (session 79's "The box refiner run twice"; not ado
 
 A candidate takes its box's raw score (the higher of the two for a union) times ``--factor``.
 Only crater boxes with a raw score of at least ``--floor`` make candidates, at most ``--top`` a
-frame, the highest first. ``--join RAW2`` joins a second raw read of the same set first (its
-boxes and the first read's, per-class NMS at ``--iou``, at most 300 a frame, as the second read
-of ``--small-read`` joins its boxes). Writes COCO results for ``lunarnav eval --test-results``:
+frame, the highest first. ``--join RAW2 [RAW3 ...]`` joins more raw reads of the same set first
+(their boxes and the first read's, per-class NMS at ``--iou``, at most 300 a frame, as the
+second read of ``--small-read`` joins its boxes; e.g. ``benchmarks/squeezed_read.py``'s). Writes COCO results for ``lunarnav eval --test-results``:
 
     .venv/bin/python benchmarks/replay_candidates.py --gt $MV --raw RAW/detections.json \\
         --candidates grow-sides --factor 0.3 \\
@@ -163,7 +163,7 @@ def replay(gt: Path, raw: Path, args: argparse.Namespace, log=print) -> list[dic
     ``args.join``, when given), candidates added, through the box refiner (and
     ``args.rescorer``), as ``lunarnav eval`` would score them."""
     _, records = read_coco(gt)
-    files = [raw] + ([args.join] if args.join is not None else [])
+    files = [raw] + list(args.join or [])
     reads = raw_reads(*files, iou=args.iou)
     unknown = sorted(set(reads) - {r.image_id for r in records})
     if unknown:
@@ -201,8 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--raw", type=Path, required=True,
                    help="its raw read: detections.json of `lunarnav eval --no-box-refiner`")
     p.add_argument("--out", type=Path, required=True, help="COCO results file to write")
-    p.add_argument("--join", type=Path, default=None,
-                   help="a second raw read of the set, joined to the first")
+    p.add_argument("--join", type=Path, nargs="+", default=None,
+                   help="more raw reads of the set, joined to the first")
     p.add_argument("--candidates", choices=CANDIDATES, default="none")
     p.add_argument("--box-refiner", type=Path, default=None, help="default: the shipped one")
     p.add_argument("--rescorer", type=Path, default=None, help="a box rescorer's ONNX file")
