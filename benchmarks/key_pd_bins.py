@@ -10,6 +10,14 @@ d/D < 0.08 above up to 24 fresh ones (d/D >= 0.16, rim >= 0.8 visible), drawn at
 ``--seed``: the labelled box in green where it was found, red where missed
 (``pd_diagnosis.py``'s tiles).
 
+With ``--misses``, how each missed key crater was boxed: the best-scoring crater box of the
+read that overlaps it at IoU >= 0.3 (any score), counted as too narrow (under 0.8 of the
+label's width), too wide (over 1.25), placed wrong at the right width, or absent; and a PNG of
+up to 36 misses, the widest first, each in a tile of the frame's aspect 10:3 around it: the
+label in red, that box in yellow with its IoU and score. Session 79 read it on the paper-mono
+test grid: most misses are big craters boxed too narrow (BENCHMARKS.md, issue 4, "The whole
+paper-mono test grid read once").
+
 Session 75 read it on `val300`: 72 % of the key craters are shallow or part-hidden, the fresh
 ones reach 0.78-0.79, those with d/D < 0.08 0.02-0.08 (BENCHMARKS.md, issue 4, "Colour frames
 reach the refiner as it was trained").
@@ -108,6 +116,88 @@ def montage(gt: dict[str, Any], match: MatchResult, root: Path, seed: int = 0,
     return np.vstack(rows[:-1])
 
 
+MISS_W, MISS_H, MISS_ROW = 320, 96, 4
+NEAR_IOU, NARROW, WIDE = 0.3, 0.8, 1.25
+
+
+def _iou_xywh(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of one box ``a`` with each of ``b`` (K, 4), all x, y, w, h."""
+    iw = np.clip(np.minimum(a[0] + a[2], b[:, 0] + b[:, 2]) - np.maximum(a[0], b[:, 0]), 0, None)
+    ih = np.clip(np.minimum(a[1] + a[3], b[:, 1] + b[:, 3]) - np.maximum(a[1], b[:, 1]), 0, None)
+    inter = iw * ih
+    return inter / (a[2] * a[3] + b[:, 2] * b[:, 3] - inter)
+
+
+def missed_key(match: MatchResult, results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each missed key crater with the best-scoring crater box of ``results`` (any score) that
+    overlaps it at IoU >= 0.3: ``{"ann", "box" (xywh or None), "iou", "score", "kind"}``,
+    ``kind`` one of "narrow", "wide", "placed", "none"; the widest labels first."""
+    by_image: dict[int, list[dict[str, Any]]] = {}
+    for det in results:
+        if det["category_id"] == 1:
+            by_image.setdefault(det["image_id"], []).append(det)
+    out = []
+    for ann, hit in zip(match.gt, match.hit, strict=True):
+        if hit or not in_key_set(ann):
+            continue
+        label = np.asarray(ann["bbox"], np.float64)
+        dets = by_image.get(ann["image_id"], [])
+        boxes = np.array([d["bbox"] for d in dets], np.float64).reshape(-1, 4)
+        iou = _iou_xywh(label, boxes)
+        near = np.flatnonzero(iou >= NEAR_IOU)
+        row = {"ann": ann, "box": None, "iou": 0.0, "score": 0.0, "kind": "none"}
+        if near.size:
+            k = near[np.argmax([dets[i]["score"] for i in near])]
+            ratio = boxes[k, 2] / label[2]
+            row.update(box=boxes[k], iou=float(iou[k]), score=float(dets[k]["score"]),
+                       kind="narrow" if ratio < NARROW else "wide" if ratio > WIDE else "placed")
+        out.append(row)
+    return sorted(out, key=lambda r: -r["ann"]["bbox"][2])
+
+
+def miss_tile(miss: dict[str, Any], image: dict[str, Any], root: Path) -> np.ndarray:
+    """A ``MISS_W`` x ``MISS_H`` tile around a missed crater (1.3 of its width, at the tile's
+    aspect): the label in red, the nearest box (:func:`missed_key`) in yellow; BGR uint8."""
+    import cv2
+
+    im = cv2.imread(str(root / image["file_name"]))
+    if im is None:
+        raise InputError(f"{root / image['file_name']}: cannot read the image")
+    x, y, w, h = miss["ann"]["bbox"]
+    cw = max(1.3 * w + 16, (h + 16) * MISS_W / MISS_H)
+    ch = cw * MISS_H / MISS_W
+    x0, y0 = x + w / 2 - cw / 2, y + h / 2 - ch / 2
+    to_tile = np.array([[MISS_W / cw, 0, -x0 * MISS_W / cw], [0, MISS_H / ch, -y0 * MISS_H / ch]])
+    tile = cv2.warpAffine(im, to_tile, (MISS_W, MISS_H), flags=cv2.INTER_AREA,
+                          borderMode=cv2.BORDER_CONSTANT)
+
+    def draw(box: np.ndarray, colour: tuple[int, int, int]) -> None:
+        bx, by, bw, bh = box
+        cv2.rectangle(tile, (int((bx - x0) * MISS_W / cw), int((by - y0) * MISS_H / ch)),
+                      (int((bx + bw - x0) * MISS_W / cw), int((by + bh - y0) * MISS_H / ch)),
+                      colour, 1)
+
+    draw(np.asarray(miss["ann"]["bbox"], np.float64), (0, 0, 255))
+    if miss["box"] is not None:
+        draw(miss["box"], (0, 255, 255))
+    ann = miss["ann"]
+    text = (f"D {ann['diameter_m']:g} m at {ann['near_rim_range_m']:g} m  {miss['kind']}  "
+            f"IoU {miss['iou']:.2f} s {miss['score']:.2f}")
+    cv2.putText(tile, text, (2, 11), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (255, 255, 0), 1)
+    return tile
+
+
+def misses_sheet(gt: dict[str, Any], misses: list[dict[str, Any]], root: Path,
+                 most: int = 36) -> np.ndarray:
+    """Up to ``most`` of :func:`missed_key`'s tiles, ``MISS_ROW`` a row; BGR uint8."""
+    images = {im["id"]: im for im in gt["images"]}
+    tiles = [miss_tile(m, images[m["ann"]["image_id"]], root) for m in misses[:most]]
+    if not tiles:
+        return np.zeros((MISS_H, MISS_W, 3), np.uint8)
+    tiles += [np.zeros((MISS_H, MISS_W, 3), np.uint8)] * (-len(tiles) % MISS_ROW)
+    return np.vstack([np.hstack(tiles[i:i + MISS_ROW]) for i in range(0, len(tiles), MISS_ROW)])
+
+
 def _pd(cell: dict[str, Any]) -> str:
     return "-" if cell["pd"] is None else f"{cell['pd']:.3f}"
 
@@ -120,10 +210,12 @@ def main(argv: list[str] | None = None) -> int:
                          "and metrics.json (the operating threshold)")
     ap.add_argument("--montage", help="PNG of shallow key craters above fresh ones")
     ap.add_argument("--seed", type=int, default=0, help="(--montage) which craters are drawn")
+    ap.add_argument("--misses", help="PNG of the missed key craters with their nearest box")
     args = ap.parse_args(argv)
     try:
-        if args.montage:
-            check_image_destination(args.montage)
+        for path in (args.montage, args.misses):
+            if path:
+                check_image_destination(path)
         gt = read_coco(args.gt, check_files=False)[0]
         read = Path(args.read)
         dets = check_coco_results(read_json_file(read / "detections.json", "detections"),
@@ -136,6 +228,9 @@ def main(argv: list[str] | None = None) -> int:
         figures, match = key_bins(gt, dets, float(threshold))
         if args.montage:
             write_image(args.montage, montage(gt, match, Path(args.gt).parent, args.seed))
+        misses = missed_key(match, dets) if args.misses else []
+        if args.misses:
+            write_image(args.misses, misses_sheet(gt, misses, Path(args.gt).parent))
     except LunarNavError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -150,6 +245,11 @@ def main(argv: list[str] | None = None) -> int:
                                         for c in cells))
     if args.montage:
         print(f"-> {args.montage}")
+    if args.misses:
+        kinds = [m["kind"] for m in misses]
+        print(f"  {len(misses)} key craters missed; the best box at IoU >= {NEAR_IOU:g}: too "
+              f"narrow {kinds.count('narrow')}, too wide {kinds.count('wide')}, placed wrong "
+              f"{kinds.count('placed')}, none {kinds.count('none')} -> {args.misses}")
     return 0
 
 

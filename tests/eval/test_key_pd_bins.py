@@ -94,3 +94,36 @@ def test_cli_errors_name_the_file(tmp_path, capsys):
     (read / "metrics.json").write_text(json.dumps({"threshold": 0.5}))
     assert bins.main(["--gt", str(tmp_path / "annotations.json"), "--read", str(read)]) == 2
     assert "annotation 1: depth_m" in capsys.readouterr().err
+
+
+def test_misses_are_told_by_their_nearest_box_and_drawn(tmp_path, capsys):
+    gt = _gt()
+    gt["annotations"][3]["bbox"] = [280, 10, 80, 20]  # the hidden shallow crater, widest now
+    dets = _dets() + [{"image_id": 1, "category_id": 1, "bbox": [280, 10, 40, 20], "score": 0.05},
+                      {"image_id": 1, "category_id": 1, "bbox": [95, 8, 90, 22], "score": 0.1}]
+    _, match = bins.key_bins(gt, dets, 0.5)
+    misses = bins.missed_key(match, dets)
+    assert [m["ann"]["id"] for m in misses] == [4, 2]  # the widest first
+    assert misses[0]["kind"] == "narrow" and misses[0]["iou"] == pytest.approx(0.5)
+    assert misses[0]["score"] == pytest.approx(0.05)
+    # crater 2: its own box at 0.3 outscores the wider one at 0.1
+    assert misses[1]["kind"] == "placed" and misses[1]["iou"] == pytest.approx(1.0)
+    assert bins.missed_key(match, _dets()[:1])[0]["kind"] == "none"
+
+    cv2.imwrite(str(tmp_path / "1.png"), np.full((200, 400), 128, np.uint8))
+    (tmp_path / "annotations.json").write_text(json.dumps(gt))
+    read = tmp_path / "read"
+    read.mkdir()
+    (read / "detections.json").write_text(json.dumps(dets))
+    (read / "metrics.json").write_text(json.dumps({"threshold": 0.5}))
+    png = tmp_path / "misses.png"
+    assert bins.main(["--gt", str(tmp_path / "annotations.json"), "--read", str(read),
+                      "--misses", str(png)]) == 0
+    assert ("2 key craters missed; the best box at IoU >= 0.3: too narrow 1, too wide 0, "
+            "placed wrong 1, none 0") in capsys.readouterr().out
+    image = cv2.imread(str(png))
+    assert image.shape == (bins.MISS_H, bins.MISS_ROW * bins.MISS_W, 3)
+    first = image[:, :bins.MISS_W].reshape(-1, 3)
+    assert ((first == (0, 0, 255)).all(axis=1).any()  # the label in red
+            and (first == (0, 255, 255)).all(axis=1).any())  # its nearest box in yellow
+    assert not image[:, 2 * bins.MISS_W:].any()  # two tiles, the rest of the row blank
