@@ -23,7 +23,8 @@ A candidate takes its box's raw score (the higher of the two for a union) times 
 Only crater boxes with a raw score of at least ``--floor`` make candidates, at most ``--top`` a
 frame, the highest first. ``--join RAW2 [RAW3 ...]`` joins more raw reads of the same set first
 (their boxes and the first read's, per-class NMS at ``--iou``, at most 300 a frame, as the
-second read of ``--small-read`` joins its boxes; e.g. ``benchmarks/squeezed_read.py``'s). Writes COCO results for ``lunarnav eval --test-results``:
+second read of ``--small-read`` joins its boxes; e.g. ``benchmarks/squeezed_read.py``'s).
+Writes COCO results for ``lunarnav eval --test-results``:
 
     .venv/bin/python benchmarks/replay_candidates.py --gt $MV --raw RAW/detections.json \\
         --candidates grow-sides --factor 0.3 \\
