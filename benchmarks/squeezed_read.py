@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--squeeze", type=float, default=0.5, help="scale across, of --side's")
     p.add_argument("--below", type=float, default=15.0,
                    help="keep boxes under this many px high at the model's own side")
-    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--threads", type=int, default=2, help="onnxruntime threads (an ONNX model)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     try:
