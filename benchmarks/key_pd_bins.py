@@ -39,6 +39,7 @@ from pd_diagnosis import crater_tile
 from lunarnav_ml.data.coco import read_coco
 from lunarnav_ml.errors import InputError, LunarNavError
 from lunarnav_ml.eval.pd import MatchResult, in_key_set, match_craters
+from lunarnav_ml.eval.pd import _iou as box_label_iou
 from lunarnav_ml.eval.predict import check_coco_results
 from lunarnav_ml.utils.atomic import check_image_destination, write_image
 from lunarnav_ml.utils.jsonfile import read_json_file
@@ -120,14 +121,6 @@ MISS_W, MISS_H, MISS_ROW = 320, 96, 4
 NEAR_IOU, NARROW, WIDE = 0.3, 0.8, 1.25
 
 
-def _iou_xywh(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of one box ``a`` with each of ``b`` (K, 4), all x, y, w, h."""
-    iw = np.clip(np.minimum(a[0] + a[2], b[:, 0] + b[:, 2]) - np.maximum(a[0], b[:, 0]), 0, None)
-    ih = np.clip(np.minimum(a[1] + a[3], b[:, 1] + b[:, 3]) - np.maximum(a[1], b[:, 1]), 0, None)
-    inter = iw * ih
-    return inter / (a[2] * a[3] + b[:, 2] * b[:, 3] - inter)
-
-
 def missed_key(match: MatchResult, results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Each missed key crater with the best-scoring crater box of ``results`` (any score) that
     overlaps it at IoU >= 0.3: ``{"ann", "box" (xywh or None), "iou", "score", "kind"}``,
@@ -140,15 +133,14 @@ def missed_key(match: MatchResult, results: list[dict[str, Any]]) -> list[dict[s
     for ann, hit in zip(match.gt, match.hit, strict=True):
         if hit or not in_key_set(ann):
             continue
-        label = np.asarray(ann["bbox"], np.float64)
         dets = by_image.get(ann["image_id"], [])
         boxes = np.array([d["bbox"] for d in dets], np.float64).reshape(-1, 4)
-        iou = _iou_xywh(label, boxes)
+        iou = box_label_iou(boxes, [ann])[:, 0] if dets else np.zeros(0)  # as the match's
         near = np.flatnonzero(iou >= NEAR_IOU)
         row = {"ann": ann, "box": None, "iou": 0.0, "score": 0.0, "kind": "none"}
         if near.size:
             k = near[np.argmax([dets[i]["score"] for i in near])]
-            ratio = boxes[k, 2] / label[2]
+            ratio = boxes[k, 2] / ann["bbox"][2]
             row.update(box=boxes[k], iou=float(iou[k]), score=float(dets[k]["score"]),
                        kind="narrow" if ratio < NARROW else "wide" if ratio > WIDE else "placed")
         out.append(row)
@@ -198,6 +190,23 @@ def misses_sheet(gt: dict[str, Any], misses: list[dict[str, Any]], root: Path,
     return np.vstack([np.hstack(tiles[i:i + MISS_ROW]) for i in range(0, len(tiles), MISS_ROW)])
 
 
+def read_eval(folder: Path) -> tuple[list[dict[str, Any]], float]:
+    """A ``lunarnav eval --task detection --out`` folder's detections and operating threshold
+    (``paired_key_pd.py`` reads its two so).
+
+    Raises:
+        InputError: a missing or malformed file, or a threshold that is not a number.
+    """
+    dets = check_coco_results(read_json_file(folder / "detections.json", "detections"),
+                              folder / "detections.json")
+    threshold = read_json_file(folder / "metrics.json", "metrics", dict).get("threshold")
+    if isinstance(threshold, bool) or not isinstance(threshold, int | float) \
+            or not np.isfinite(threshold):
+        raise InputError(f"{folder / 'metrics.json'}: threshold: expected a number, got "
+                         f"{threshold!r}")
+    return dets, float(threshold)
+
+
 def _pd(cell: dict[str, Any]) -> str:
     return "-" if cell["pd"] is None else f"{cell['pd']:.3f}"
 
@@ -217,15 +226,8 @@ def main(argv: list[str] | None = None) -> int:
             if path:
                 check_image_destination(path)
         gt = read_coco(args.gt, check_files=False)[0]
-        read = Path(args.read)
-        dets = check_coco_results(read_json_file(read / "detections.json", "detections"),
-                                  read / "detections.json")
-        metrics = read_json_file(read / "metrics.json", "metrics", dict)
-        threshold = metrics.get("threshold")
-        if not (isinstance(threshold, int | float) and np.isfinite(threshold)):
-            raise InputError(f"{read / 'metrics.json'}: threshold: expected a number, got "
-                             f"{threshold!r}")
-        figures, match = key_bins(gt, dets, float(threshold))
+        dets, threshold = read_eval(Path(args.read))
+        figures, match = key_bins(gt, dets, threshold)
         if args.montage:
             write_image(args.montage, montage(gt, match, Path(args.gt).parent, args.seed))
         misses = missed_key(match, dets) if args.misses else []

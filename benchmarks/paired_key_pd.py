@@ -20,28 +20,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from key_pd_bins import read_eval
 
 from lunarnav_ml.data.coco import read_coco
 from lunarnav_ml.errors import InputError, LunarNavError
 from lunarnav_ml.eval.pd import in_key_set, match_craters
-from lunarnav_ml.eval.predict import check_coco_results
-from lunarnav_ml.utils.jsonfile import read_json_file
-
-
-def read_eval(folder: Path) -> tuple[list[dict[str, Any]], float]:
-    """An eval folder's detections and operating threshold.
-
-    Raises:
-        InputError: a missing or malformed file, or a threshold that is not a number.
-    """
-    dets = check_coco_results(read_json_file(folder / "detections.json", "detections"),
-                              folder / "detections.json")
-    threshold = read_json_file(folder / "metrics.json", "metrics", dict).get("threshold")
-    if isinstance(threshold, bool) or not isinstance(threshold, int | float) \
-            or not np.isfinite(threshold):
-        raise InputError(f"{folder / 'metrics.json'}: threshold: expected a number, got "
-                         f"{threshold!r}")
-    return dets, float(threshold)
 
 
 def key_found(gt: dict[str, Any], dets: list[dict[str, Any]], threshold: float

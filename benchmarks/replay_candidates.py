@@ -154,7 +154,8 @@ class TwoPassRefiner:
         once, q_detector = self.refiner.refine_scored(gray, boxes_xywh, quality)
         if len(once) == 0:
             return once, q_detector
-        twice, q_refined = self.refiner.refine_scored(gray, once, quality)
+        twice, q_refined = self.refiner.refine_scored(gray, once,
+                                                      quality and self.quality == "refined")
         return (twice if self.refine == "twice" else once,
                 q_refined if self.quality == "refined" else q_detector)
 
@@ -176,9 +177,8 @@ def replay(gt: Path, raw: Path, args: argparse.Namespace, log=print) -> list[dic
 
         rescorer = BoxRescorer(args.rescorer)
     refiner = BoxRefiner(args.box_refiner)
-    refine, quality = getattr(args, "refine", "once"), getattr(args, "quality", "detector")
-    if (refine, quality) != ("once", "detector"):
-        refiner = TwoPassRefiner(refiner, refine, quality)
+    if (args.refine, args.quality) != ("once", "detector"):
+        refiner = TwoPassRefiner(refiner, args.refine, args.quality)
     detector = BoxRefinedDetector(None, refiner, rescorer)
     empty = {"boxes": np.zeros((0, 4)), "scores": np.zeros(0, np.float32),
              "labels": np.zeros(0, np.int64)}
