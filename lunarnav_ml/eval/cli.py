@@ -61,7 +61,8 @@ def add_box_rescorer_arguments(p: argparse.ArgumentParser) -> None:
                    help="score each refined crater box by this rescorer from `lunarnav "
                         "train-box-rescorer` (no file: the shipped one, fitted on the shipped "
                         "small.pt with the shipped box refiner and refused for other models; "
-                        "with --small-read 640 the shipped one fitted on that read's boxes; "
+                        "with --small-read 640 the shipped one fitted on that read's boxes "
+                        "of small.pt or of small_grid.pt; "
                         "default off; docs/geometry.md)")
     p.add_argument("--no-box-rescorer", dest="box_rescorer", action="store_const", const=None,
                    help="keep sqrt(score x quality) as the crater score (the default)")
@@ -72,9 +73,10 @@ def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refine
     """The :class:`~lunarnav_ml.geometry.boxrescore.BoxRescorer` of ``--box-rescorer`` for the
     model file ``model`` and the box refiner ``refiner`` (None when switched off).
 
-    With ``--small-read`` the shipped file is the one fitted on the boxes of that read
-    (``box_rescorer_small_read.onnx``): the boxes the second read adds change what a box's
-    neighbours say.
+    With ``--small-read`` the shipped file is one fitted on the boxes of that read: the boxes
+    the second read adds change what a box's neighbours say. ``box_rescorer_small_read.onnx``
+    is for ``small.pt``, ``box_rescorer_grid.onnx`` for ``small_grid.pt``; the one fitted on
+    ``model`` is taken.
 
     Raises:
         InputError: a rescorer without a box refiner (``--no-box-refiner``); the shipped file
@@ -83,7 +85,7 @@ def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refine
             output is refused by the :class:`~lunarnav_ml.geometry.boxrefine.BoxRefinedDetector`
             it goes into.)
     """
-    from lunarnav_ml.geometry.boxrescore import SMALL_READ_BOX_RESCORER, BoxRescorer
+    from lunarnav_ml.geometry.boxrescore import SMALL_READ_BOX_RESCORERS, BoxRescorer
 
     choice = getattr(args, "box_rescorer", None)
     if choice is None:
@@ -93,19 +95,21 @@ def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refine
                          "--no-box-refiner (the shipped box refiner has one)")
     small_read = small_read_config(args)
     read = None if small_read is None else small_read.record()
-    shipped = choice == SHIPPED
-    if shipped and small_read is not None:  # the shipped file fitted on that read's boxes
-        choice = str(SMALL_READ_BOX_RESCORER)
-    rescorer = _open_tool(BoxRescorer, choice, args.threads)
-    if shipped and (model is None or not rescorer.fitted_for(model, refiner.path, read)):
-        fitted = rescorer.fitted_with
-        raise InputError(f"{rescorer.path}: fitted on the scores of "
-                         f"{(fitted['detector'] or {}).get('file')} with "
-                         f"{(fitted['box_refiner'] or {}).get('file')}, fitted on the boxes of "
-                         f"{_read_flags(fitted['small_read'])}; asked for {model} with "
-                         f"{refiner.path} and {_read_flags(read)}; fit one for them with "
-                         f"`lunarnav train-box-rescorer` and name it")
-    return rescorer
+    if choice != SHIPPED:
+        return _open_tool(BoxRescorer, choice, args.threads)
+    # the shipped file fitted on this model's boxes of this read (`small.pt` or `small_grid.pt`)
+    files = [SHIPPED] if small_read is None else [str(f) for f in SMALL_READ_BOX_RESCORERS]
+    rescorers = [_open_tool(BoxRescorer, file, args.threads) for file in files]
+    for rescorer in rescorers:
+        if model is not None and rescorer.fitted_for(model, refiner.path, read):
+            return rescorer
+    fitted = rescorers[0].fitted_with  # named after the first: small.pt's for that read
+    raise InputError(f"{rescorers[0].path}: fitted on the scores of "
+                     f"{(fitted['detector'] or {}).get('file')} with "
+                     f"{(fitted['box_refiner'] or {}).get('file')}, fitted on the boxes of "
+                     f"{_read_flags(fitted['small_read'])}; asked for {model} with "
+                     f"{refiner.path} and {_read_flags(read)}; fit one for them with "
+                     f"`lunarnav train-box-rescorer` and name it")
 
 
 def _read_flags(read: dict[str, float] | None) -> str:

@@ -53,12 +53,18 @@ FEATURES = (
 DEFAULT_BOX_RESCORER = Path(__file__).resolve().parents[1] / "weights" / "box_rescorer.onnx"
 # fitted on the boxes of `--small-read 640` (the default cut), for the paper's 1024 px frames
 SMALL_READ_BOX_RESCORER = DEFAULT_BOX_RESCORER.with_name("box_rescorer_small_read.onnx")
+# the same for `small_grid.pt` (trained on the paper's grid) with `--small-read 640`
+GRID_BOX_RESCORER = DEFAULT_BOX_RESCORER.with_name("box_rescorer_grid.onnx")
+# the shipped files for `--small-read 640`, in the order `--box-rescorer` without a file tries them
+SMALL_READ_BOX_RESCORERS = (SMALL_READ_BOX_RESCORER, GRID_BOX_RESCORER)
 
 
 def rescored_by(path: str | os.PathLike | None) -> str:
     """The report-title phrase for crater scores from the rescorer ``path`` (None: shipped)."""
     if path is not None and Path(path).resolve() == SMALL_READ_BOX_RESCORER:
         return "scored by the shipped box rescorer for --small-read"
+    if path is not None and Path(path).resolve() == GRID_BOX_RESCORER:
+        return "scored by the shipped box rescorer for small_grid.pt with --small-read"
     shipped = path is None or Path(path).resolve() == DEFAULT_BOX_RESCORER
     return "scored by " + ("the shipped box rescorer" if shipped else str(path))
 

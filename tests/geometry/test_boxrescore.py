@@ -15,6 +15,7 @@ from lunarnav_ml.geometry.boxrefine import BoxRefinedDetector, BoxRefiner
 from lunarnav_ml.geometry.boxrescore import (
     DEFAULT_BOX_RESCORER,
     FEATURES,
+    GRID_BOX_RESCORER,
     NEIGHBOUR_FLOOR,
     RAW_FLOOR,
     SMALL_READ_BOX_RESCORER,
@@ -223,6 +224,16 @@ def test_cli_fit_and_the_default_choice(labelled_set, tmp_path, capsys):
                                                            {"side": 640, "below_px": 15.0})
     assert load_box_rescorer(args, DEFAULT_WEIGHTS, BoxRefiner()).path == SMALL_READ_BOX_RESCORER
     assert rescored_by(SMALL_READ_BOX_RESCORER).endswith("shipped box rescorer for --small-read")
+    # small_grid.pt (trained on the paper's grid) takes its own file for that read
+    grid_weights = DEFAULT_WEIGHTS.with_name("small_grid.pt")
+    assert load_box_rescorer(args, grid_weights, BoxRefiner()).path == GRID_BOX_RESCORER
+    assert not BoxRescorer(GRID_BOX_RESCORER).fitted_for(DEFAULT_WEIGHTS, DEFAULT_BOX_REFINER,
+                                                         {"side": 640, "below_px": 15.0})
+    assert "small_grid.pt" in rescored_by(GRID_BOX_RESCORER)
+    args.small_read, args.small_read_band = None, None  # small_grid.pt, one read: none fits
+    with pytest.raises(InputError, match="asked for .*small_grid.pt"):
+        load_box_rescorer(args, grid_weights, BoxRefiner())
+    args.small_read, args.small_read_band = 640, (0.27, 0.56)
     for side, below in ((768, 15.0), (640, 9.0)):  # another read: refused, not misapplied
         args.small_read, args.small_read_below = side, below
         with pytest.raises(InputError, match="fitted on the boxes of --small-read 640"):
