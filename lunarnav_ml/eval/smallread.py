@@ -25,11 +25,13 @@ AP50 0.677, key-crater Pd 0.849, Pd 0.77-0.86 at every sun zenith).
 more (the whole test grid, four quarters: 0.677 / 0.855, every bin 0.755 or more; two quarters
 alone each have one bin under 0.75), for 0.66 of the whole second read's time; the narrower
 0.27-0.56 misses craters near the horizon (validation AP50 0.629 against 0.639 without the
-rescorer). ``horizon`` gives the band as angles over and under the camera's horizon instead,
-for any camera pitch: :meth:`SmallBoxReadConfig.at_camera` turns it into rows once the camera
-is known (the
-``--camera`` record of ``lunarnav localize`` and ``lunarnav detect``; each image's own record in
-``lunarnav eval``, through :attr:`SmallBoxReadPredictor.camera`).
+rescorer). ``small_grid.pt``, trained on the paper's grid at both read scales, with the band
+and its own rescorer read the whole test grid at 0.703 / 0.879 (BENCHMARKS.md, issue 4, "A
+model trained on the paper's grid"). ``horizon`` gives the band as angles over and under the
+camera's horizon instead, for any camera pitch: :meth:`SmallBoxReadConfig.at_camera` turns it
+into rows once the camera is known (the ``--camera`` record of ``lunarnav localize`` and
+``lunarnav detect``; each image's own record in ``lunarnav eval``, through
+:attr:`SmallBoxReadPredictor.camera`).
 """
 
 from __future__ import annotations
