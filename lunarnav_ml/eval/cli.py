@@ -99,12 +99,14 @@ def load_box_rescorer(args: argparse.Namespace, model: str | Path | None, refine
         return _open_tool(BoxRescorer, choice, args.threads)
     # the shipped file fitted on this model's boxes of this read (`small.pt` or `small_grid.pt`)
     files = [SHIPPED] if small_read is None else [str(f) for f in SMALL_READ_BOX_RESCORERS]
-    rescorers = [_open_tool(BoxRescorer, file, args.threads) for file in files]
-    for rescorer in rescorers:
+    first = None
+    for file in files:  # opened one at a time: the first that fits is taken
+        rescorer = _open_tool(BoxRescorer, file, args.threads)
         if model is not None and rescorer.fitted_for(model, refiner.path, read):
             return rescorer
-    fitted = rescorers[0].fitted_with  # named after the first: small.pt's for that read
-    raise InputError(f"{rescorers[0].path}: fitted on the scores of "
+        first = first or rescorer
+    fitted = first.fitted_with  # named after the first: small.pt's for that read
+    raise InputError(f"{first.path}: fitted on the scores of "
                      f"{(fitted['detector'] or {}).get('file')} with "
                      f"{(fitted['box_refiner'] or {}).get('file')}, fitted on the boxes of "
                      f"{_read_flags(fitted['small_read'])}; asked for {model} with "

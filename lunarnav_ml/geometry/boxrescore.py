@@ -59,14 +59,15 @@ GRID_BOX_RESCORER = DEFAULT_BOX_RESCORER.with_name("box_rescorer_grid.onnx")
 SMALL_READ_BOX_RESCORERS = (SMALL_READ_BOX_RESCORER, GRID_BOX_RESCORER)
 
 
+SHIPPED_NAMES = {DEFAULT_BOX_RESCORER: "the shipped box rescorer",
+                 SMALL_READ_BOX_RESCORER: "the shipped box rescorer for --small-read",
+                 GRID_BOX_RESCORER: "the shipped box rescorer for small_grid.pt with --small-read"}
+
+
 def rescored_by(path: str | os.PathLike | None) -> str:
     """The report-title phrase for crater scores from the rescorer ``path`` (None: shipped)."""
-    if path is not None and Path(path).resolve() == SMALL_READ_BOX_RESCORER:
-        return "scored by the shipped box rescorer for --small-read"
-    if path is not None and Path(path).resolve() == GRID_BOX_RESCORER:
-        return "scored by the shipped box rescorer for small_grid.pt with --small-read"
-    shipped = path is None or Path(path).resolve() == DEFAULT_BOX_RESCORER
-    return "scored by " + ("the shipped box rescorer" if shipped else str(path))
+    resolved = DEFAULT_BOX_RESCORER if path is None else Path(path).resolve()
+    return "scored by " + SHIPPED_NAMES.get(resolved, str(path))
 
 
 def file_digest(path: str | os.PathLike) -> str:
