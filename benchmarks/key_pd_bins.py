@@ -5,7 +5,7 @@ threshold, split by label attribute.
 Printed: the key Pd over all key craters, over the fresh and whole ones (depth / diameter >=
 0.12 and at least 0.8 of the rim visible) and over the rest; the most it could reach with the
 shallow ones (d/D < 0.08) all missed and every other found; then per bin of depth / diameter,
-visible rim fraction and near-rim range. With ``--montage``, a PNG of up to 24 key craters with
+visible rim fraction, near-rim range and the label box's width / height (a rim seen edge-on). With ``--montage``, a PNG of up to 24 key craters with
 d/D < 0.08 above up to 24 fresh ones (d/D >= 0.16, rim >= 0.8 visible), drawn at random with
 ``--seed``: the labelled box in green where it was found, red where missed
 (``pd_diagnosis.py``'s tiles).
@@ -49,6 +49,9 @@ BINS = {  # label attribute: (value of an annotation, bin edges)
     "depth/diameter": (lambda a: a["depth_m"] / a["diameter_m"], (0.0, 0.08, 0.12, 0.16, np.inf)),
     "visible rim fraction": (lambda a: a.get("visible_rim_fraction", 1.0), (0.0, 0.5, 0.8, np.inf)),
     "near-rim range m": (lambda a: a["near_rim_range_m"], (0.0, 10.0, 15.0, np.inf)),
+    # edge-on rims: session 82 found most of the paper-mono test grid's misses over 20
+    "box width/height": (lambda a: a["bbox"][2] / max(a["bbox"][3], 1e-6),
+                         (0.0, 10.0, 15.0, 20.0, 25.0, np.inf)),
 }
 TILE_W = TILE_H = 160  # pd_diagnosis.crater_tile's
 PER_ROW = 6

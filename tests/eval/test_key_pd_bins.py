@@ -47,6 +47,8 @@ def test_key_craters_are_split_by_attribute_at_the_threshold():
     assert rim[0.0] == (1, 0.0) and rim[0.8] == (3, pytest.approx(2 / 3))
     rng = {c["from"]: (c["n"], c["pd"]) for c in fig["bins"]["near-rim range m"]}
     assert rng[0.0] == (2, 0.5) and rng[10.0] == (1, 0.0) and rng[15.0] == (1, 1.0)
+    aspect = {c["from"]: (c["n"], c["pd"]) for c in fig["bins"]["box width/height"]}
+    assert aspect[0.0] == (4, 0.5) and aspect[25.0] == (0, None)  # every box is 60 x 20
     # a lower threshold finds the second fresh crater too
     assert bins.key_bins(_gt(), _dets(), 0.2)[0]["fresh"]["pd"] == 1.0
     assert match.hit.sum() == 3  # the far crater is found, but it is not a key crater
