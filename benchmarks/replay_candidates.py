@@ -13,7 +13,9 @@ session 78); none was adopted:
 - ``grow-centre``: widened by ``--grow`` / 2 of its width on each side;
 - ``unions``: the union of two flat crater boxes that share at least ``--rows`` of their rows,
   lie no more than ``--gap`` of the narrower width apart and together are ``--wider`` times
-  wider than either.
+  wider than either;
+- ``extend``: each flat crater box grown to the whole crater by a trained flat-box extender
+  (``--extender E.pt``, ``benchmarks/flat_extender.py``; session 83).
 
 ``--refine twice`` runs the box refiner again on its own boxes (a crop around the refined box);
 ``--quality refined`` scores each box with the quality the refiner gives the once-refined box
@@ -36,6 +38,7 @@ Writes COCO results for ``lunarnav eval --test-results``:
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 from pathlib import Path
@@ -45,10 +48,11 @@ import numpy as np
 from lunarnav_ml.data.coco import read_coco, read_image
 from lunarnav_ml.errors import REPORTED_ERRORS, ConfigError, InputError
 from lunarnav_ml.eval.predict import read_coco_results, to_coco_results
+from lunarnav_ml.geometry._checks import as_image
 from lunarnav_ml.geometry.boxrefine import CRATER_LABEL, BoxRefinedDetector, BoxRefiner
 from lunarnav_ml.utils import atomic
 
-CANDIDATES = ("none", "grow-sides", "grow-centre", "grow-both", "unions")
+CANDIDATES = ("none", "grow-sides", "grow-centre", "grow-both", "unions", "extend")
 
 
 def flat_boxes(pred: dict[str, np.ndarray], args: argparse.Namespace
@@ -96,14 +100,18 @@ def unions(b: np.ndarray, s: np.ndarray, rows: float, gap: float, wider: float
     return np.array(out_b, np.float64).reshape(-1, 4), np.array(out_s, np.float32)
 
 
-def candidates(pred: dict[str, np.ndarray], shape: tuple[int, ...], args: argparse.Namespace
-               ) -> dict[str, np.ndarray]:
+def candidates(pred: dict[str, np.ndarray], shape: tuple[int, ...], args: argparse.Namespace,
+               extend=None) -> dict[str, np.ndarray]:
     """One frame's raw read with ``args.candidates`` added as crater boxes (clipped to the
-    frame, scores x ``factor``)."""
+    frame, scores x ``factor``); ``extend`` (for ``extend``): the frame's flat boxes (x, y, w,
+    h) -> the whole craters' boxes, e.g. a :class:`FlatExtender` on the frame."""
     if args.candidates == "none":
         return pred
     b, s = flat_boxes(pred, args)
-    if args.candidates == "unions":
+    if args.candidates == "extend":
+        xywh = extend(np.column_stack([b[:, :2], b[:, 2:] - b[:, :2]]))
+        extra, extra_s = np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]), s
+    elif args.candidates == "unions":
         extra, extra_s = unions(b, s, args.rows, args.gap, args.wider)
     else:
         extra, extra_s = grown(b, s, args.candidates.split("-")[1], args.grow)
@@ -180,13 +188,23 @@ def replay(gt: Path, raw: Path, args: argparse.Namespace, log=print) -> list[dic
     if (args.refine, args.quality) != ("once", "detector"):
         refiner = TwoPassRefiner(refiner, args.refine, args.quality)
     detector = BoxRefinedDetector(None, refiner, rescorer)
+    extender = None
+    if args.candidates == "extend":
+        if args.extender is None:
+            raise ConfigError("--candidates extend: give --extender E.pt")
+        from flat_extender import FlatExtender
+
+        extender = FlatExtender(args.extender)
     empty = {"boxes": np.zeros((0, 4)), "scores": np.zeros(0, np.float32),
              "labels": np.zeros(0, np.int64)}
     results, added, t0 = [], 0, time.perf_counter()
     for k, record in enumerate(records):
         image = read_image(record)
         pred = reads.get(record.image_id, empty)
-        more = candidates(pred, image.shape, args)
+        extend = None
+        if extender is not None:
+            extend = functools.partial(extender, as_image("image", image))
+        more = candidates(pred, image.shape, args, extend)
         added += len(more["scores"]) - len(pred["scores"])
         out = detector.above(detector.refine(image, more, args.iou), args.conf)
         results += to_coco_results(out, record.image_id)
@@ -205,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--join", type=Path, nargs="+", default=None,
                    help="more raw reads of the set, joined to the first")
     p.add_argument("--candidates", choices=CANDIDATES, default="none")
+    p.add_argument("--extender", type=Path, default=None,
+                   help="(extend) a flat extender, benchmarks/flat_extender.py")
     p.add_argument("--box-refiner", type=Path, default=None, help="default: the shipped one")
     p.add_argument("--rescorer", type=Path, default=None, help="a box rescorer's ONNX file")
     p.add_argument("--refine", choices=("once", "twice"), default="once",
