@@ -25,7 +25,9 @@ A candidate takes its box's raw score (the higher of the two for a union) times 
 Only crater boxes with a raw score of at least ``--floor`` make candidates, at most ``--top`` a
 frame, the highest first. ``--join RAW2 [RAW3 ...]`` joins more raw reads of the same set first
 (their boxes and the first read's, per-class NMS at ``--iou``, at most 300 a frame, as the
-second read of ``--small-read`` joins its boxes; e.g. ``benchmarks/squeezed_read.py``'s).
+second read of ``--small-read`` joins its boxes; e.g. ``benchmarks/squeezed_read.py``'s);
+``--join-fuse wbf`` fuses them by weighted boxes fusion instead (``benchmarks/mirrored_read.py``'s
+mirrored read; session 83).
 Writes COCO results for ``lunarnav eval --test-results``:
 
     .venv/bin/python benchmarks/replay_candidates.py --gt $MV --raw RAW/detections.json \\
@@ -123,22 +125,33 @@ def candidates(pred: dict[str, np.ndarray], shape: tuple[int, ...], args: argpar
                                       np.full(len(extra), CRATER_LABEL, np.int64)])}
 
 
-def raw_reads(*paths: Path, iou: float = 0.6, max_det: int = 300
+def raw_reads(*paths: Path, iou: float = 0.6, max_det: int = 300, fuse: str = "nms",
+              shapes: dict[int, tuple[int, int]] | None = None
               ) -> dict[int, dict[str, np.ndarray]]:
     """Results files as per-image predictions (xyxy boxes, scores, labels); two or more files
-    (reads of one set) joined: per-class NMS at ``iou``, at most ``max_det`` a frame."""
+    (reads of one set) joined: per-class NMS at ``iou``, at most ``max_det`` a frame, or with
+    ``fuse`` "wbf" weighted boxes fusion at ``iou`` (as ``--tta`` fuses its passes; needs each
+    image's ``shapes`` (height, width))."""
+    from lunarnav_ml.eval.tta import fuse_passes
     from lunarnav_ml.runtime.nms import batched_nms
 
-    per: dict[int, list[dict]] = {}
-    for path in paths:
+    per: dict[int, list[list[dict]]] = {}
+    for k, path in enumerate(paths):
         for det in read_coco_results(path):
-            per.setdefault(det["image_id"], []).append(det)
+            per.setdefault(det["image_id"], [[] for _ in paths])[k].append(det)
     out = {}
-    for image_id, dets in per.items():
-        xywh = np.array([d["bbox"] for d in dets], np.float64).reshape(-1, 4)
-        pred = {"boxes": np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]),
-                "scores": np.array([d["score"] for d in dets], np.float32),
-                "labels": np.array([d["category_id"] for d in dets], np.int64)}
+    for image_id, by_file in per.items():
+        preds = []
+        for dets in by_file:
+            xywh = np.array([d["bbox"] for d in dets], np.float64).reshape(-1, 4)
+            preds.append({"boxes": np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]),
+                          "scores": np.array([d["score"] for d in dets], np.float32),
+                          "labels": np.array([d["category_id"] for d in dets], np.int64)})
+        if len(paths) > 1 and fuse == "wbf":
+            fused = fuse_passes(preds, shapes[image_id], iou, max_det=max_det)
+            out[image_id] = {**fused, "boxes": fused["boxes"].astype(np.float64)}
+            continue
+        pred = {k: np.concatenate([p[k] for p in preds]) for k in preds[0]}
         if len(paths) > 1:  # in float32, as the second read's own merge
             keep = batched_nms(pred["boxes"].astype(np.float32), pred["scores"],
                                pred["labels"], iou)[:max_det]
@@ -174,7 +187,9 @@ def replay(gt: Path, raw: Path, args: argparse.Namespace, log=print) -> list[dic
     ``args.rescorer``), as ``lunarnav eval`` would score them."""
     _, records = read_coco(gt)
     files = [raw] + list(args.join or [])
-    reads = raw_reads(*files, iou=args.iou)
+    shapes = {r.image_id: (r.height, r.width) for r in records}
+    reads = raw_reads(*files, iou=args.fuse_iou if args.join_fuse == "wbf" else args.iou,
+                      fuse=args.join_fuse, shapes=shapes)
     unknown = sorted(set(reads) - {r.image_id for r in records})
     if unknown:
         raise InputError(f"{' or '.join(map(str, files))}: image_id {unknown[0]} is not an "
@@ -222,6 +237,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, required=True, help="COCO results file to write")
     p.add_argument("--join", type=Path, nargs="+", default=None,
                    help="more raw reads of the set, joined to the first")
+    p.add_argument("--join-fuse", choices=("nms", "wbf"), default="nms",
+                   help="how --join joins the reads: per-class NMS at --iou, or weighted boxes "
+                        "fusion at --fuse-iou")
+    p.add_argument("--fuse-iou", type=float, default=0.55, help="(wbf) boxes fused above it")
     p.add_argument("--candidates", choices=CANDIDATES, default="none")
     p.add_argument("--extender", type=Path, default=None,
                    help="(extend) a flat extender, benchmarks/flat_extender.py")

@@ -128,3 +128,20 @@ def test_bad_input_is_one_line(tmp_path, capsys, extra, says):
     assert replay.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert says in err and "\n" not in err and not (tmp_path / "o.json").exists()
+
+
+def test_reads_fused_by_wbf_average_their_boxes(tmp_path):
+    a = [{"image_id": 1, "category_id": 1, "bbox": [100, 50, 200, 10], "score": 0.8}]
+    b = [{"image_id": 1, "category_id": 1, "bbox": [100, 52, 200, 10], "score": 0.8},
+         {"image_id": 1, "category_id": 2, "bbox": [10, 10, 20, 20], "score": 0.6}]
+    (tmp_path / "a.json").write_text(json.dumps(a))
+    (tmp_path / "b.json").write_text(json.dumps(b))
+    fused = replay.raw_reads(tmp_path / "a.json", tmp_path / "b.json", iou=0.55, fuse="wbf",
+                             shapes={1: (200, 400)})[1]
+    crater = fused["labels"] == 1
+    np.testing.assert_allclose(fused["boxes"][crater], [[100, 51, 300, 61]], atol=1e-3)
+    np.testing.assert_allclose(fused["scores"][crater], [0.8], atol=1e-6)
+    rock = fused["labels"] == 2  # found by one read of two: its score halved
+    np.testing.assert_allclose(fused["scores"][rock], [0.3], atol=1e-6)
+    joined = replay.raw_reads(tmp_path / "a.json", tmp_path / "b.json", iou=0.6)[1]
+    assert len(joined["scores"]) == 2  # NMS keeps one of the two crater boxes
