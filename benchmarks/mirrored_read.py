@@ -16,19 +16,13 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+from squeezed_read import add_raw_read_arguments, write_raw_read
 
-from lunarnav_ml.data.coco import read_coco
-from lunarnav_ml.errors import REPORTED_ERRORS
-from lunarnav_ml.eval.predict import predict_coco
 from lunarnav_ml.eval.smallread import add_small_read_arguments, small_read_config
 from lunarnav_ml.eval.tta import _unmirror
-from lunarnav_ml.utils import atomic
-
-DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "lunarnav_ml" / "weights" / "small.pt"
 
 
 class MirroredRead:
@@ -52,28 +46,11 @@ class MirroredRead:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--gt", type=Path, required=True, help="the set's COCO annotations")
-    p.add_argument("--out", type=Path, required=True, help="COCO results file to write")
-    p.add_argument("--model", type=Path, default=DEFAULT_MODEL,
-                   help="detector checkpoint or ONNX file (default: the shipped small.pt)")
-    p.add_argument("--threads", type=int, default=2, help="onnxruntime threads (an ONNX model)")
-    p.add_argument("--no-progress", action="store_true")
+    add_raw_read_arguments(p)
     add_small_read_arguments(p)
     args = p.parse_args(argv)
-    try:
-        from lunarnav_ml.eval.cli import load_predictor
-
-        gt, _ = read_coco(args.gt)
-        predictor = load_predictor(args.model, args.threads,
-                                   small_read=small_read_config(args))
-        results = predict_coco(MirroredRead(predictor), gt, args.gt.parent, desc="mirrored",
-                               origin=str(args.gt), progress=not args.no_progress)
-        atomic.write_json(args.out, results, indent=None)
-    except REPORTED_ERRORS as err:
-        print(f"mirrored_read: error: {err}", file=sys.stderr)
-        return 2
-    print(f"{len(results)} results -> {args.out}")
-    return 0
+    return write_raw_read("mirrored", args, lambda load: MirroredRead(
+        load(args.model, args.threads, small_read=small_read_config(args))))
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -85,34 +86,48 @@ class SqueezedBandRead:
                 "labels": np.asarray(pred["labels"], np.int64).reshape(-1)[keep]}
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_raw_read_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of a script that writes a raw read of a set: ``--gt``, ``--out``,
+    ``--model``, ``--threads``, ``--no-progress``."""
     p.add_argument("--gt", type=Path, required=True, help="the set's COCO annotations")
     p.add_argument("--out", type=Path, required=True, help="COCO results file to write")
     p.add_argument("--model", type=Path, default=DEFAULT_MODEL,
                    help="detector checkpoint or ONNX file (default: the shipped small.pt)")
+    p.add_argument("--threads", type=int, default=2, help="onnxruntime threads (an ONNX model)")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def write_raw_read(name: str, args: argparse.Namespace,
+                   reader: Callable[[Callable[..., Any]], Any]) -> int:
+    """Read the set ``args.gt`` with ``reader(load_predictor)`` (its ``predict``; it loads the
+    model with the given function) and write the COCO results to ``args.out``; the exit
+    status, a one-line error for bad input."""
+    try:
+        from lunarnav_ml.eval.cli import load_predictor
+
+        gt, _ = read_coco(args.gt)
+        results = predict_coco(reader(load_predictor), gt, args.gt.parent, desc=name,
+                               origin=str(args.gt), progress=not args.no_progress)
+        atomic.write_json(args.out, results, indent=None)
+    except REPORTED_ERRORS as err:
+        print(f"{name}_read: error: {err}", file=sys.stderr)
+        return 2
+    print(f"{len(results)} results -> {args.out}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_raw_read_arguments(p)
     p.add_argument("--side", type=int, default=640, help="the read's scale down the rows")
     p.add_argument("--band", type=float, nargs=2, default=(0.15, 0.6), metavar=("TOP", "BOTTOM"))
     p.add_argument("--squeeze", type=float, default=0.5, help="scale across, of --side's")
     p.add_argument("--below", type=float, default=15.0,
                    help="keep boxes under this many px high at the model's own side")
-    p.add_argument("--threads", type=int, default=2, help="onnxruntime threads (an ONNX model)")
-    p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
-    try:
-        from lunarnav_ml.eval.cli import load_predictor
-
-        gt, _ = read_coco(args.gt)
-        reader = SqueezedBandRead(load_predictor(args.model, args.threads), args.side,
-                                  tuple(args.band), args.squeeze, args.below)
-        results = predict_coco(reader, gt, args.gt.parent, desc="squeezed",
-                               origin=str(args.gt), progress=not args.no_progress)
-        atomic.write_json(args.out, results, indent=None)
-    except REPORTED_ERRORS as err:
-        print(f"squeezed_read: error: {err}", file=sys.stderr)
-        return 2
-    print(f"{len(results)} results -> {args.out}")
-    return 0
+    return write_raw_read("squeezed", args, lambda load: SqueezedBandRead(
+        load(args.model, args.threads), args.side, tuple(args.band), args.squeeze,
+        args.below))
 
 
 if __name__ == "__main__":
