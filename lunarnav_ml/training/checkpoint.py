@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from lunarnav_ml.errors import InputError
+from lunarnav_ml.errors import ConfigError, InputError
 
 SLIM_FORMAT = "lunarnav-detector-v1"
 CONFIG_KEYS = ("preset", "num_classes", "class_names", "anchors", "img_size")
@@ -81,6 +81,37 @@ def load_weights(model: nn.Module, path: str | Path, preset: str | None = None) 
         warnings.warn(f"{path}: weights of preset {config['preset']!r} start a {preset!r} model "
                       "(same tensors, other activations)", stacklevel=2)
     model.load_state_dict(state)
+
+
+def reanchor(model: nn.Module, anchors: Any) -> list[tuple[int, int]]:
+    """Give a trained ``model`` new ``anchors`` (its shape, :math:`(L, A, 2)` px) and move each
+    changed anchor's ``tw`` and ``th`` biases by log(old / new), so that its boxes, ``anchor x
+    exp(t)``, start where they were (:mod:`lunarnav_ml.models.decode`); training then assigns
+    it the boxes of its new shape. Returns the changed ``(level, anchor)`` slots.
+
+    Raises:
+        ConfigError: ``anchors`` is not of the model's shape, or not all positive and finite.
+    """
+    old = model.anchors.detach().clone()
+    try:
+        new = torch.as_tensor(anchors, dtype=old.dtype, device=old.device)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"reanchor: expected (levels, anchors, 2) sizes in px: {err}") from None
+    if new.shape != old.shape or not (torch.isfinite(new).all() and (new > 0).all()):
+        raise ConfigError(f"reanchor: expected {tuple(old.shape)} positive sizes in px (the "
+                          f"model's anchors), got {tuple(new.shape)} {new.tolist()}")
+    changed = []
+    per = model.head.num_outputs
+    with torch.no_grad():
+        for level, pred in enumerate(model.head.preds):
+            for a in range(old.shape[1]):
+                if torch.equal(new[level, a], old[level, a]):
+                    continue
+                shift = torch.log(old[level, a] / new[level, a])
+                pred.bias[a * per + 2: a * per + 4] += shift.to(pred.bias.dtype)
+                changed.append((level, a))
+        model.set_anchors(new)
+    return changed
 
 
 def save_slim(path: str | Path, config: dict[str, Any], model: nn.Module,

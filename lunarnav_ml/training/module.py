@@ -19,7 +19,7 @@ from lunarnav_ml.errors import ConfigError
 from lunarnav_ml.losses import YOLOLoss, detection_kd_loss
 from lunarnav_ml.losses.yolo_loss import PreparedTargets
 from lunarnav_ml.models import build_model, decode, postprocess
-from lunarnav_ml.training.checkpoint import load_weights
+from lunarnav_ml.training.checkpoint import load_weights, reanchor
 from lunarnav_ml.training.ema import ModelEMA
 from lunarnav_ml.training.schedule import WarmupCosine
 
@@ -54,6 +54,10 @@ class DetectorModule(L.LightningModule):
             drawn per batch; ``None`` keeps ``img_size``.
         init_from: checkpoint (Lightning ``.ckpt`` or slim ``.pt``) whose weights start a
             fine-tuning run (anchors come with them).
+        reanchor: with ``init_from``, :math:`(L, 3, 2)` anchors that replace the loaded ones;
+            each changed anchor's size biases move by the log of the old size over the new, so
+            its boxes start where they were, and the assigner gives it the boxes of its new
+            shape from the first step (:func:`~lunarnav_ml.training.checkpoint.reanchor`).
         freeze_backbone: keep the backbone's weights and BatchNorm statistics fixed.
         val_conf_thres, val_iou_thres: post-processing during validation.
         channels_last: model and batches in channels-last (NHWC) memory format; ``None``: on
@@ -82,7 +86,8 @@ class DetectorModule(L.LightningModule):
                  ignore_thresh: float = 0.7, box_weight: float = 0.05, obj_weight: float = 1.0,
                  cls_weight: float = 0.02, obj_iou_ratio: float = 1.0,
                  multiscale: tuple[int, int] | None = None,
-                 init_from: str | None = None, freeze_backbone: bool = False,
+                 init_from: str | None = None, reanchor: list | None = None,
+                 freeze_backbone: bool = False,
                  val_conf_thres: float = 0.001, val_iou_thres: float = 0.6,
                  channels_last: bool | None = None, compile: bool | str = False,
                  teacher: str | None = None, teacher_weight: float = 1.0) -> None:
@@ -91,6 +96,9 @@ class DetectorModule(L.LightningModule):
             raise ConfigError(f"optimizer must be 'adamw' or 'sgd', got {optimizer!r}")
         if not teacher_weight >= 0:
             raise ConfigError(f"teacher_weight must be >= 0, got {teacher_weight}")
+        if reanchor is not None and not init_from:
+            raise ConfigError("reanchor: replaces the anchors of an init_from checkpoint; "
+                              "without one give anchors")
         class_names = list(class_names or default_class_names(num_classes))
         if len(class_names) != num_classes:
             raise ConfigError(f"class_names has {len(class_names)} names for {num_classes} classes")
@@ -114,6 +122,8 @@ class DetectorModule(L.LightningModule):
     def setup(self, stage: str) -> None:
         if self.hparams.init_from:
             load_weights(self.model, self.hparams.init_from, self.hparams.preset)
+            if self.hparams.get("reanchor") is not None:
+                reanchor(self.model, self.hparams.reanchor)
             self.ema.module.load_state_dict(self.model.state_dict())
             self._anchors_ready = True
         if not self._anchors_ready and stage == "fit":

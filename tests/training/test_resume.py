@@ -182,3 +182,41 @@ def test_accumulated_batches_step_ema_and_schedule_once_per_optimizer_step(tiny_
     trainer.fit(module, dm)
     assert trainer.global_step == 2 and int(module.ema.updates) == 2
     assert trainer.lr_scheduler_configs[0].scheduler.last_epoch == 2
+
+
+def test_reanchor_keeps_the_boxes_and_changes_the_shapes():
+    from lunarnav_ml.errors import ConfigError
+    from lunarnav_ml.models import build_model
+    from lunarnav_ml.models.decode import decode
+    from lunarnav_ml.training.checkpoint import reanchor
+
+    torch.manual_seed(0)
+    model = build_model("nano").eval()
+    x = torch.rand(1, 3, 128, 128)
+    with torch.no_grad():
+        before = decode(model(x), model.anchors, model.strides, model.scale_xy)
+    new = model.anchors.clone()
+    new[1, 1] = torch.tensor([160.0, 8.0])  # a flat anchor in place of the middle one
+    assert reanchor(model, new.tolist()) == [(1, 1)]
+    torch.testing.assert_close(model.anchors, new)
+    with torch.no_grad():
+        after = decode(model(x), model.anchors, model.strides, model.scale_xy)
+    torch.testing.assert_close(after, before, rtol=1e-4, atol=1e-3)  # the same boxes
+    assert reanchor(model, new) == []  # nothing changed, nothing moved
+    for bad in (new[:2], torch.full_like(new, float("nan")), -new, "flat"):
+        with pytest.raises(ConfigError, match="reanchor"):
+            reanchor(model, bad)
+
+
+def test_reanchor_needs_init_from_and_is_applied_on_it(tiny_coco, tmp_path, trained):
+    from lunarnav_ml.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="reanchor"):
+        _parts(tiny_coco, reanchor=[[[10, 7]] * 3] * 3)
+    source = torch.load(trained[0], map_location="cpu", weights_only=False)["state_dict"]
+    new = source["ema.module.anchors"].clone()
+    new[2, 0] = torch.tensor([90.0, 6.0])
+    record = _Record()
+    module, dm = _parts(tiny_coco, init_from=str(trained[0]), reanchor=new.tolist())
+    _trainer(tmp_path / "b", 1, record).fit(module, dm)
+    torch.testing.assert_close(record.anchors, new)
