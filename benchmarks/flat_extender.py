@@ -9,7 +9,7 @@ candidates the quality net could not tell from boxes grown onto bare ground.
 This extender reads a crop ``SPAN`` box widths wide around a flat box, at a height of 3 box
 heights plus 0.06 of the crop's width, and regresses the whole crater's box (the same small
 net as the box refiner, :class:`~lunarnav_ml.training.box_refiner.BoxRefinerNet`, edges as
-fractions of the crop). It is trained on fragments of flat labels: a random 0.35-1.0 of a flat
+fractions of the crop, trained by its loop). It is trained on fragments of flat labels: a random 0.35-1.0 of a flat
 label's width at a random place along it, its top and bottom moved by N(0, 0.15 x height); a
 quarter of them the whole label. ``benchmarks/replay_candidates.py --candidates extend
 --extender E.pt`` adds each flat crater box's extension as a candidate, which the box refiner
@@ -23,19 +23,23 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from torch import nn
 from tqdm import tqdm
 
 from lunarnav_ml.errors import REPORTED_ERRORS, ConfigError, InputError
 from lunarnav_ml.geometry.boxrefine import cut_crops, decode_edges, encode_edges, normalize_crops
 from lunarnav_ml.geometry.report import annotations_path, read_gray
-from lunarnav_ml.training.box_refiner import BoxRefinerNet, _label_boxes
-from lunarnav_ml.training.refiner import optimizer_step, seeded_split
+from lunarnav_ml.training.box_refiner import (
+    BoxCrops,
+    BoxRefinerConfig,
+    BoxRefinerNet,
+    _label_boxes,
+    train_box_refiner,
+)
+from lunarnav_ml.training.refiner import seeded_split
 from lunarnav_ml.utils import atomic
 from lunarnav_ml.utils.jsonfile import read_json_file
 
@@ -106,41 +110,15 @@ def build(datasets: list[Path], per_label: int, seed: int) -> tuple[np.ndarray, 
 
 def train(crops: np.ndarray, targets: np.ndarray, epochs: int, batch: int, lr: float,
           seed: int) -> tuple[BoxRefinerNet, float, float]:
-    """The net trained on ``crops``; the held-out mean |edge error| before (the fragment's own
-    edges) and after, as fractions of the crop."""
-    rng, val, tr = seeded_split(len(crops), 0.05, seed)
-    net = BoxRefinerNet()
-    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
-    per_epoch = len(tr) // batch
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=epochs * per_epoch,
-                                                pct_start=0.1)
-    t0, step = time.perf_counter(), 0
-    for epoch in range(epochs):
-        order = rng.permutation(tr)
-        for i in range(per_epoch):
-            idx = np.sort(order[i * batch:(i + 1) * batch])
-            x = normalize_crops(crops[idx])
-            y = targets[idx].copy()
-            flip = rng.random(len(idx)) < 0.5
-            x[flip] = x[flip, :, :, ::-1]
-            y[flip] = np.column_stack([1 - y[flip, 2], y[flip, 1], 1 - y[flip, 0], y[flip, 3]])
-            x *= np.exp(rng.normal(0.0, 0.2, (len(idx), 1, 1, 1))).astype(np.float32)
-            out = net(torch.from_numpy(np.ascontiguousarray(x)))
-            loss = nn.functional.smooth_l1_loss(out, torch.from_numpy(y), beta=0.02)
-            step += 1
-            optimizer_step(loss, opt, sched, step)
-        net.eval()
-        with torch.no_grad():
-            pred = torch.cat([net(torch.from_numpy(normalize_crops(crops[val[i:i + 1024]])))
-                              for i in range(0, len(val), 1024)]).numpy()
-        net.train()
-        after = float(np.abs(pred - targets[val]).mean())
-        print(f"epoch {epoch + 1}/{epochs}: step {step}, {time.perf_counter() - t0:.0f} s, "
-              f"held-out mean |edge error| {after:.4f} of the crop", flush=True)
+    """The net trained on ``crops`` by the box refiner's own loop (mirroring, gain, smooth L1,
+    one-cycle rate); the held-out mean |edge error| before (the fragment's own left and right
+    edges) and after (all four), as fractions of the crop."""
+    config = BoxRefinerConfig(epochs=epochs, batch=batch, lr=lr, seed=seed)
+    net, report = train_box_refiner(BoxCrops(crops, targets), config,
+                                    log=lambda line: print(line, flush=True))
+    _, val, _ = seeded_split(len(crops), config.val_fraction, seed)  # the loop's held-out crops
     own = np.tile(np.array([0.5 - 0.5 / SPAN, 0.5 + 0.5 / SPAN], np.float32), (len(val), 1))
-    before = float(np.abs(own - targets[val][:, [0, 2]]).mean())
-    net.eval()
-    return net, before, after
+    return net, float(np.abs(own - targets[val][:, [0, 2]]).mean()), report.refined_l1
 
 
 class FlatExtender:
@@ -182,8 +160,6 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
         crops, targets = build(args.datasets, args.per_label, args.seed)
         print(f"{len(crops)} crops", flush=True)
-        if len(crops) < 2 * args.batch:
-            raise InputError(f"{len(crops)} crops: need at least {2 * args.batch}")
         net, before, after = train(crops, targets, args.epochs, args.batch, args.lr, args.seed)
         with atomic.atomic_path(args.out) as tmp:
             torch.save({"net": net.state_dict(), "span": SPAN,

@@ -134,6 +134,7 @@ def raw_reads(*paths: Path, iou: float = 0.6, max_det: int = 300, fuse: str = "n
     image's ``shapes`` (height, width))."""
     from lunarnav_ml.eval.tta import fuse_passes
     from lunarnav_ml.runtime.nms import batched_nms
+    from lunarnav_ml.training.box_rescorer import _prediction as as_prediction
 
     per: dict[int, list[list[dict]]] = {}
     for k, path in enumerate(paths):
@@ -141,12 +142,7 @@ def raw_reads(*paths: Path, iou: float = 0.6, max_det: int = 300, fuse: str = "n
             per.setdefault(det["image_id"], [[] for _ in paths])[k].append(det)
     out = {}
     for image_id, by_file in per.items():
-        preds = []
-        for dets in by_file:
-            xywh = np.array([d["bbox"] for d in dets], np.float64).reshape(-1, 4)
-            preds.append({"boxes": np.column_stack([xywh[:, :2], xywh[:, :2] + xywh[:, 2:]]),
-                          "scores": np.array([d["score"] for d in dets], np.float32),
-                          "labels": np.array([d["category_id"] for d in dets], np.int64)})
+        preds = [as_prediction(dets) for dets in by_file]
         if len(paths) > 1 and fuse == "wbf":
             fused = fuse_passes(preds, shapes[image_id], iou, max_det=max_det)
             out[image_id] = {**fused, "boxes": fused["boxes"].astype(np.float64)}
