@@ -84,34 +84,74 @@ def load_weights(model: nn.Module, path: str | Path, preset: str | None = None) 
 
 
 def reanchor(model: nn.Module, anchors: Any) -> list[tuple[int, int]]:
-    """Give a trained ``model`` new ``anchors`` (its shape, :math:`(L, A, 2)` px) and move each
-    changed anchor's ``tw`` and ``th`` biases by log(old / new), so that its boxes, ``anchor x
-    exp(t)``, start where they were (:mod:`lunarnav_ml.models.decode`); training then assigns
-    it the boxes of its new shape. Returns the changed ``(level, anchor)`` slots.
+    """Give a trained ``model`` new ``anchors`` and move each changed anchor's ``tw`` and ``th``
+    biases by log(old / new), so that its boxes, ``anchor x exp(t)``, start where they were
+    (:mod:`lunarnav_ml.models.decode`); training then assigns it the boxes of its new shape.
+
+    ``anchors`` is :math:`(L, A', 2)` px with ``A' >= A``, the model's anchors per level. Slots
+    past ``A`` are added: each one's prediction channels (weights and biases) are copied from
+    the level's old anchor nearest to it in log width and log height, its size biases moved
+    the same way, so that it starts as a copy of that anchor's boxes (duplicates that NMS
+    removes) and takes no shape away from the others. Returns the changed or added
+    ``(level, anchor)`` slots.
 
     Raises:
-        ConfigError: ``anchors`` is not of the model's shape, or not all positive and finite.
+        ConfigError: ``anchors`` has another number of levels, fewer anchors per level than the
+            model, or sizes that are not all positive and finite.
     """
     old = model.anchors.detach().clone()
     try:
         new = torch.as_tensor(anchors, dtype=old.dtype, device=old.device)
     except (TypeError, ValueError) as err:
         raise ConfigError(f"reanchor: expected (levels, anchors, 2) sizes in px: {err}") from None
-    if new.shape != old.shape or not (torch.isfinite(new).all() and (new > 0).all()):
-        raise ConfigError(f"reanchor: expected {tuple(old.shape)} positive sizes in px (the "
-                          f"model's anchors), got {tuple(new.shape)} {new.tolist()}")
-    changed = []
+    levels, count = old.shape[:2]
+    if (new.ndim != 3 or new.shape[0] != levels or new.shape[1] < count or new.shape[2] != 2
+            or not (torch.isfinite(new).all() and (new > 0).all())):
+        raise ConfigError(f"reanchor: expected ({levels}, >= {count}, 2) positive sizes in px "
+                          f"(the model's anchors: {tuple(old.shape)}), got "
+                          f"{tuple(new.shape)} {new.tolist()}")
     per = model.head.num_outputs
+    if new.shape[1] > count:
+        _add_anchor_channels(model, old, new)
+    changed = []
     with torch.no_grad():
         for level, pred in enumerate(model.head.preds):
-            for a in range(old.shape[1]):
-                if torch.equal(new[level, a], old[level, a]):
+            for a in range(new.shape[1]):
+                src = a if a < count else _nearest_anchor(old[level], new[level, a])
+                if a < count and torch.equal(new[level, a], old[level, a]):
                     continue
-                shift = torch.log(old[level, a] / new[level, a])
+                shift = torch.log(old[level, src] / new[level, a])
                 pred.bias[a * per + 2: a * per + 4] += shift.to(pred.bias.dtype)
                 changed.append((level, a))
-        model.set_anchors(new)
+        if new.shape == old.shape:
+            model.set_anchors(new)
+        else:
+            model.anchors = new.clone()
     return changed
+
+
+def _nearest_anchor(anchors: torch.Tensor, size: torch.Tensor) -> int:
+    """Index of the anchor (``(A, 2)`` px) nearest to ``size`` in log width and log height."""
+    return int((torch.log(anchors) - torch.log(size)).square().sum(-1).argmin())
+
+
+def _add_anchor_channels(model: nn.Module, old: torch.Tensor, new: torch.Tensor) -> None:
+    """Widen each prediction conv of ``model.head`` from ``old``'s anchors to ``new``'s, the
+    added slots' channels copied from their nearest old anchor (biases as they were: the
+    caller moves the size biases)."""
+    head, per = model.head, model.head.num_outputs
+    count, total = old.shape[1], new.shape[1]
+    for level, pred in enumerate(head.preds):
+        rows = [torch.arange(a * per, (a + 1) * per) for a in range(count)]
+        rows += [rows[_nearest_anchor(old[level], new[level, a])] for a in range(count, total)]
+        index = torch.cat(rows).to(pred.weight.device)
+        wide = nn.Conv2d(pred.in_channels, total * per, 1).to(pred.weight.device,
+                                                              pred.weight.dtype)
+        with torch.no_grad():
+            wide.weight.copy_(pred.weight.index_select(0, index))
+            wide.bias.copy_(pred.bias.index_select(0, index))
+        head.preds[level] = wide
+    head.num_anchors = total
 
 
 def save_slim(path: str | Path, config: dict[str, Any], model: nn.Module,

@@ -54,10 +54,12 @@ class DetectorModule(L.LightningModule):
             drawn per batch; ``None`` keeps ``img_size``.
         init_from: checkpoint (Lightning ``.ckpt`` or slim ``.pt``) whose weights start a
             fine-tuning run (anchors come with them).
-        reanchor: with ``init_from``, :math:`(L, 3, 2)` anchors that replace the loaded ones;
-            each changed anchor's size biases move by the log of the old size over the new, so
-            its boxes start where they were, and the assigner gives it the boxes of its new
-            shape from the first step (:func:`~lunarnav_ml.training.checkpoint.reanchor`).
+        reanchor: with ``init_from``, :math:`(L, A, 2)` anchors that replace the loaded ones
+            (``A`` at least the loaded count; the slots past it are added, copies of the
+            nearest loaded anchor); each changed anchor's size biases move by the log of the
+            old size over the new, so its boxes start where they were, and the assigner gives
+            it the boxes of its new shape from the first step
+            (:func:`~lunarnav_ml.training.checkpoint.reanchor`).
         freeze_backbone: keep the backbone's weights and BatchNorm statistics fixed.
         val_conf_thres, val_iou_thres: post-processing during validation.
         channels_last: model and batches in channels-last (NHWC) memory format; ``None``: on
@@ -124,6 +126,8 @@ class DetectorModule(L.LightningModule):
             load_weights(self.model, self.hparams.init_from, self.hparams.preset)
             if self.hparams.get("reanchor") is not None:
                 reanchor(self.model, self.hparams.reanchor)
+            if self.ema.module.anchors.shape != self.model.anchors.shape:  # anchors added
+                self.ema = ModelEMA(self.model, self.hparams.ema_decay, self.hparams.ema_tau)
             self.ema.module.load_state_dict(self.model.state_dict())
             self._anchors_ready = True
         if not self._anchors_ready and stage == "fit":

@@ -176,3 +176,25 @@ def test_channels_last_model_exports_the_same_graph_values(parts, tmp_path):
     batch = np.random.default_rng(7).random((1, 3, 128, 128), dtype=np.float32)
     assert_decoded_close(OnnxDetector(path, img_size=128).forward(batch),
                          torch_decoded(parts, batch))
+
+
+def test_four_anchors_per_level_save_load_and_export(parts, tmp_path):
+    """A model given a fourth anchor per level (``model.reanchor``) round-trips through a
+    slim file and exports with every anchor's boxes."""
+    from lunarnav_ml.training.api import Detector, load_detector
+    from lunarnav_ml.training.checkpoint import reanchor
+
+    model = copy.deepcopy(parts.model)
+    flat = torch.tensor([[[30.0, 3.0]], [[60.0, 5.0]], [[120.0, 8.0]]])
+    reanchor(model, torch.cat([model.anchors, flat], dim=1))
+    ckpt = Detector(model, 128, list(parts.class_names), "nano").save(tmp_path / "a4.pt")
+    loaded = load_detector(ckpt)
+    assert loaded.model.head.num_anchors == 4
+    det = OnnxDetector(export_onnx(ckpt, tmp_path / "a4.onnx", img_size=128))
+    batch = np.random.default_rng(4).random((1, 3, 128, 128), dtype=np.float32)
+    with torch.no_grad():
+        ref = decode(model(torch.from_numpy(batch)), model.anchors, model.strides,
+                     model.scale_xy).numpy()
+    got = det.forward(batch)
+    assert got.shape == ref.shape == (1, 4 * 21 * 4 ** 2, 8)
+    assert_decoded_close(got, ref)

@@ -208,6 +208,42 @@ def test_reanchor_keeps_the_boxes_and_changes_the_shapes():
             reanchor(model, bad)
 
 
+def test_reanchor_adds_anchors_as_copies_of_the_nearest():
+    from lunarnav_ml.errors import ConfigError
+    from lunarnav_ml.models import build_model
+    from lunarnav_ml.models.decode import decode, split_raw
+    from lunarnav_ml.training.checkpoint import reanchor
+
+    torch.manual_seed(0)
+    model = build_model("nano").eval()
+    x = torch.rand(1, 3, 128, 128)
+    with torch.no_grad():
+        before = [split_raw(r, 3) for r in model(x)]
+    old = model.anchors.clone()
+    flat = torch.tensor([[40.0, 4.0], [160.0, 8.0], [320.0, 12.0]])
+    new = torch.cat([old, flat[:, None]], dim=1)  # a fourth, flat anchor per level
+    assert reanchor(model, new.tolist()) == [(0, 3), (1, 3), (2, 3)]
+    assert model.head.num_anchors == 4 and model.anchors.shape == (3, 4, 2)
+    with torch.no_grad():
+        raw = model(x)
+        boxes = decode(raw, model.anchors, model.strides, model.scale_xy)
+    for level, r in enumerate(raw):
+        p = split_raw(r, 4)
+        torch.testing.assert_close(p[:, :3], before[level])  # the old slots as they were
+        src = int((old[level].log() - flat[level].log()).square().sum(-1).argmin())
+        torch.testing.assert_close(p[:, 3, ..., 4:], before[level][:, src, ..., 4:])
+    # the added slot's boxes are its source anchor's: same centres and sizes
+    per_level = [r.shape[2] * r.shape[3] for r in raw]
+    start = 0
+    for level, n in enumerate(per_level):
+        b = boxes[:, start:start + 4 * n, :4].reshape(1, 4, n, 4)
+        src = int((old[level].log() - flat[level].log()).square().sum(-1).argmin())
+        torch.testing.assert_close(b[:, 3], b[:, src], rtol=1e-4, atol=1e-3)
+        start += 4 * n
+    with pytest.raises(ConfigError, match="reanchor"):
+        reanchor(model, old)  # fewer anchors than the model has
+
+
 def test_reanchor_needs_init_from_and_is_applied_on_it(tiny_coco, tmp_path, trained):
     from lunarnav_ml.errors import ConfigError
 
@@ -220,3 +256,25 @@ def test_reanchor_needs_init_from_and_is_applied_on_it(tiny_coco, tmp_path, trai
     module, dm = _parts(tiny_coco, init_from=str(trained[0]), reanchor=new.tolist())
     _trainer(tmp_path / "b", 1, record).fit(module, dm)
     torch.testing.assert_close(record.anchors, new)
+
+
+def test_reanchor_with_an_added_anchor_trains_resumes_and_loads(tiny_coco, tmp_path, trained):
+    from lunarnav_ml.training.api import load_detector
+
+    source = torch.load(trained[0], map_location="cpu", weights_only=False)["state_dict"]
+    old = source["ema.module.anchors"]
+    new = torch.cat([old, torch.tensor([[24.0, 3.0], [48.0, 4.0], [96.0, 6.0]])[:, None]], 1)
+    module, dm = _parts(tiny_coco, init_from=str(trained[0]), reanchor=new.tolist())
+    _trainer(tmp_path, 3, _Record()).fit(module, dm)  # last.ckpt at step 2
+    ckpt_path = tmp_path / "ckpt" / "last.ckpt"
+    record = _Record()
+    module, dm = _parts(tiny_coco, init_from=str(trained[0]), reanchor=new.tolist())
+    _trainer(tmp_path, 4, record).fit(module, dm, ckpt_path=str(ckpt_path))
+    assert record.step == 2 and record.ema_updates == 2
+    torch.testing.assert_close(record.anchors, new)
+    detector = load_detector(ckpt_path)
+    assert detector.model.head.num_anchors == 4
+    torch.testing.assert_close(detector.model.anchors, new)
+    saved = torch.load(ckpt_path, map_location="cpu", weights_only=False)["state_dict"]
+    torch.testing.assert_close(detector.model.head.preds[1].weight,
+                               saved["ema.module.head.preds.1.weight"])
