@@ -50,5 +50,23 @@ class YOLOHead(nn.Module):
             bias[:, 5:] = math.log(0.6 / max(num_classes - 0.99, 0.01))
             pred.bias = nn.Parameter(bias.view(-1).clone())
 
+    def add_anchors(self, sources: list[list[int]]) -> None:
+        """Add anchor slots to every scale: scale ``i`` gains ``len(sources[i])`` (the same count
+        at every scale), each a copy of the prediction channels (weights and biases) of the
+        existing anchor ``sources[i][k]``."""
+        if len({len(s) for s in sources}) != 1 or len(sources) != len(self.preds):
+            raise ValueError(f"one list of source anchors per scale ({len(self.preds)}), all "
+                             f"of one length; got {sources}")
+        per = self.num_outputs
+        for level, pred in enumerate(self.preds):
+            slots = list(range(self.num_anchors)) + list(sources[level])
+            index = torch.cat([torch.arange(a * per, (a + 1) * per) for a in slots])
+            wide = nn.Conv2d(pred.in_channels, len(slots) * per, 1).to(pred.weight)
+            with torch.no_grad():
+                wide.weight.copy_(pred.weight[index.to(pred.weight.device)])
+                wide.bias.copy_(pred.bias[index.to(pred.bias.device)])
+            self.preds[level] = wide
+        self.num_anchors += len(sources[0])
+
     def forward(self, feats: list[torch.Tensor]) -> list[torch.Tensor]:
         return [pred(conv(x)) for x, conv, pred in zip(feats, self.convs, self.preds)]

@@ -110,48 +110,25 @@ def reanchor(model: nn.Module, anchors: Any) -> list[tuple[int, int]]:
         raise ConfigError(f"reanchor: expected ({levels}, >= {count}, 2) positive sizes in px "
                           f"(the model's anchors: {tuple(old.shape)}), got "
                           f"{tuple(new.shape)} {new.tolist()}")
-    per = model.head.num_outputs
+    # each slot's source: itself, or for an added slot the level's nearest old anchor in log
+    # width and log height
+    distance = (old.log()[:, None] - new.log()[:, count:, None]).square().sum(-1)  # L, A'-A, A
+    sources = [list(range(count)) + distance[level].argmin(-1).tolist()
+               for level in range(levels)]
     if new.shape[1] > count:
-        _add_anchor_channels(model, old, new)
+        model.head.add_anchors([s[count:] for s in sources])
+    per = model.head.num_outputs
     changed = []
     with torch.no_grad():
         for level, pred in enumerate(model.head.preds):
-            for a in range(new.shape[1]):
-                src = a if a < count else _nearest_anchor(old[level], new[level, a])
+            for a, src in enumerate(sources[level]):
                 if a < count and torch.equal(new[level, a], old[level, a]):
                     continue
                 shift = torch.log(old[level, src] / new[level, a])
                 pred.bias[a * per + 2: a * per + 4] += shift.to(pred.bias.dtype)
                 changed.append((level, a))
-        if new.shape == old.shape:
-            model.set_anchors(new)
-        else:
-            model.anchors = new.clone()
+        model.anchors = new.clone()  # the buffer replaced: its shape may have grown
     return changed
-
-
-def _nearest_anchor(anchors: torch.Tensor, size: torch.Tensor) -> int:
-    """Index of the anchor (``(A, 2)`` px) nearest to ``size`` in log width and log height."""
-    return int((torch.log(anchors) - torch.log(size)).square().sum(-1).argmin())
-
-
-def _add_anchor_channels(model: nn.Module, old: torch.Tensor, new: torch.Tensor) -> None:
-    """Widen each prediction conv of ``model.head`` from ``old``'s anchors to ``new``'s, the
-    added slots' channels copied from their nearest old anchor (biases as they were: the
-    caller moves the size biases)."""
-    head, per = model.head, model.head.num_outputs
-    count, total = old.shape[1], new.shape[1]
-    for level, pred in enumerate(head.preds):
-        rows = [torch.arange(a * per, (a + 1) * per) for a in range(count)]
-        rows += [rows[_nearest_anchor(old[level], new[level, a])] for a in range(count, total)]
-        index = torch.cat(rows).to(pred.weight.device)
-        wide = nn.Conv2d(pred.in_channels, total * per, 1).to(pred.weight.device,
-                                                              pred.weight.dtype)
-        with torch.no_grad():
-            wide.weight.copy_(pred.weight.index_select(0, index))
-            wide.bias.copy_(pred.bias.index_select(0, index))
-        head.preds[level] = wide
-    head.num_anchors = total
 
 
 def save_slim(path: str | Path, config: dict[str, Any], model: nn.Module,

@@ -126,9 +126,8 @@ class DetectorModule(L.LightningModule):
             load_weights(self.model, self.hparams.init_from, self.hparams.preset)
             if self.hparams.get("reanchor") is not None:
                 reanchor(self.model, self.hparams.reanchor)
-            if self.ema.module.anchors.shape != self.model.anchors.shape:  # anchors added
-                self.ema = ModelEMA(self.model, self.hparams.ema_decay, self.hparams.ema_tau)
-            self.ema.module.load_state_dict(self.model.state_dict())
+            # a fresh average of the loaded model (reanchor may have added anchor slots)
+            self.ema = ModelEMA(self.model, self.hparams.ema_decay, self.hparams.ema_tau)
             self._anchors_ready = True
         if not self._anchors_ready and stage == "fit":
             self._kmeans_anchors()
