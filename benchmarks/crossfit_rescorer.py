@@ -53,7 +53,7 @@ from lunarnav_ml.utils.jsonfile import read_json_file
 
 ARMS = ("base", "ground")
 GROUND_FEATURES = ("ground_diameter_m", "ground_aspect")
-NO_GROUND = -1.0  # a box whose centre row is at or over the horizon
+NO_GROUND = -1.0  # a box whose bottom row is at or over the horizon
 
 
 def ground_range(row: np.ndarray, camera: dict[str, float]) -> np.ndarray:
@@ -92,8 +92,7 @@ def ground_features(xyxy: np.ndarray, camera: dict[str, float]) -> np.ndarray:
 def read_set(gt_path: Path, raw_path: Path, refiner: BoxRefiner, log=print) -> dict[str, Any]:
     """Every frame of ``gt_path`` through the box refiner (no rescorer), with each crater box's
     rescorer and ground features and whether it matches a countable crater."""
-    _, records = read_coco(gt_path)
-    gt = read_json_file(gt_path, "COCO annotations", dict)
+    gt, records = read_coco(gt_path)
     cameras = {im["id"]: im.get("camera") for im in gt.get("images", [])}
     reads = raw_reads(raw_path)
     detector = BoxRefinedDetector(None, refiner)
@@ -169,8 +168,9 @@ def evaluate(gt: Path, results: Path, out: Path) -> dict[str, Any]:
     return json.loads((out / "metrics.json").read_text())
 
 
-def held_out(k: int, arm: str, data: list[dict[str, Any]], args: argparse.Namespace,
-             fit_on: list[list[int]]) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
+def held_out(k: int, arm: str, data: list[dict[str, Any]], gts: list[dict[str, Any]],
+             args: argparse.Namespace, fit_on: list[list[int]]
+             ) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
     """Set ``k`` replayed with an ``arm`` rescorer fitted on its ``fit_on`` sets and read by
     ``lunarnav eval``: its figures, and its key craters' frames and found flags."""
     from lunarnav_ml.training.box_rescorer import BoxRescorerConfig, fit
@@ -189,8 +189,7 @@ def held_out(k: int, arm: str, data: list[dict[str, Any]], args: argparse.Namesp
         evaluate(args.gt[k], folder / "detections.json", folder / "eval")
         rows_used = int(good.sum())
     metrics = json.loads((folder / "eval" / "metrics.json").read_text())
-    gt = read_coco(args.gt[k], check_files=False)[0]
-    image, hit = key_found(gt, *read_eval(folder / "eval"))
+    image, hit = key_found(gts[k], *read_eval(folder / "eval"))
     cell = {"ap50": metrics["coco"]["per_class"]["crater"]["AP50"],
             "key_pd": metrics["crater_pd_D5_within20m"], "found": int(hit.sum()),
             "key": len(hit), "threshold": metrics["threshold"],
@@ -276,14 +275,15 @@ def main(argv: list[str] | None = None) -> int:
             print(f"set {k}: {gt} through the box refiner", flush=True)
             data.append(read_set(gt, raw, refiner, log=lambda s: print(s, flush=True)))
             atomic.write_bytes(cache, pickle.dumps(data[-1]))
+        gts = [read_coco(g, check_files=False)[0] for g in args.gt]
         tasks = [(k, arm) for k in range(n) for arm in args.arms]
         if args.jobs > 1:  # the trees are grown without the GIL, the reads in a subprocess
             from concurrent.futures import ThreadPoolExecutor
 
             with ThreadPoolExecutor(args.jobs) as pool:
-                done = list(pool.map(lambda t: held_out(*t, data, args, fit_on), tasks))
+                done = list(pool.map(lambda t: held_out(*t, data, gts, args, fit_on), tasks))
         else:
-            done = [held_out(k, arm, data, args, fit_on) for k, arm in tasks]
+            done = [held_out(k, arm, data, gts, args, fit_on) for k, arm in tasks]
         summary: dict[str, Any] = {"sets": [str(g) for g in args.gt], "fit_on": fit_on,
                                    "arms": {}}
         for arm in args.arms:
