@@ -21,9 +21,9 @@ Arms:
         --raw raw_q{0,1,2,3}/detections.json --fit-on 1,2 2,3 3,0 0,1 --out OUT
 
 Each set's replay through the box refiner is cached in ``OUT/set<k>.pkl`` (about 1.5 min a
-quarter) and each fit takes 3-4 min on one core (``--jobs 2`` runs two at once). A second model's
-reads of the same sets compare with ``--arms base --against OUT/summary.json``: its pooled key
-craters paired with the first run's first arm.
+quarter) and each fit takes 3-4 min on one core (``--jobs 2`` runs two at once); sets that fit on
+the same others share one fit. A second model's reads of the same sets compare with ``--arms
+base --against OUT/summary.json``: its pooled key craters paired with the first run's first arm.
 """
 
 from __future__ import annotations
@@ -168,33 +168,39 @@ def evaluate(gt: Path, results: Path, out: Path) -> dict[str, Any]:
     return json.loads((out / "metrics.json").read_text())
 
 
-def held_out(k: int, arm: str, data: list[dict[str, Any]], gts: list[dict[str, Any]],
-             args: argparse.Namespace, fit_on: list[list[int]]
-             ) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
-    """Set ``k`` replayed with an ``arm`` rescorer fitted on its ``fit_on`` sets and read by
-    ``lunarnav eval``: its figures, and its key craters' frames and found flags."""
+def fit_rescorer(sets: tuple[int, ...], arm: str, data: list[dict[str, Any]],
+                 seed: int) -> tuple[Any, np.ndarray, int]:
+    """An ``arm`` rescorer fitted on ``sets``: the trees, the columns they read, the rows used."""
     from lunarnav_ml.training.box_rescorer import BoxRescorerConfig, fit
 
+    train = [rows(data[s]) for s in sets]
+    x = np.concatenate([t[0] for t in train])
+    y = np.concatenate([t[1] for t in train])
+    good = (y >= 0) & np.isfinite(x).all(axis=1)
+    cols = columns(arm, x.shape[1])
+    return fit(x[good][:, cols], y[good], BoxRescorerConfig(seed=seed)), cols, int(good.sum())
+
+
+def held_out(k: int, arm: str, data: list[dict[str, Any]], gts: list[dict[str, Any]],
+             args: argparse.Namespace, fit_on: list[list[int]],
+             fitted: tuple[Any, np.ndarray, int] | None
+             ) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
+    """Set ``k`` replayed with the ``fitted`` ``arm`` rescorer (None: its earlier read, reused)
+    and read by ``lunarnav eval``: its figures, and its key craters' frames and found flags."""
     folder = args.out / f"set{k}_{arm}"
     t0, rows_used = time.perf_counter(), 0
-    if not (args.reuse and (folder / "eval" / "metrics.json").exists()):
-        train = [rows(data[s]) for s in fit_on[k]]
-        x = np.concatenate([t[0] for t in train])
-        y = np.concatenate([t[1] for t in train])
-        good = (y >= 0) & np.isfinite(x).all(axis=1)
-        cols = columns(arm, x.shape[1])
-        model = fit(x[good][:, cols], y[good], BoxRescorerConfig(seed=args.seed))
+    if fitted is not None:
+        model, cols, rows_used = fitted
         atomic.write_json(folder / "detections.json",
                           rescored_results(data[k], model, cols, args.conf), indent=None)
         evaluate(args.gt[k], folder / "detections.json", folder / "eval")
-        rows_used = int(good.sum())
     metrics = json.loads((folder / "eval" / "metrics.json").read_text())
     image, hit = key_found(gts[k], *read_eval(folder / "eval"))
     cell = {"ap50": metrics["coco"]["per_class"]["crater"]["AP50"],
             "key_pd": metrics["crater_pd_D5_within20m"], "found": int(hit.sum()),
             "key": len(hit), "threshold": metrics["threshold"],
             "fa_per_image": metrics["false_alarms_per_image"]}
-    print(f"set {k} {arm}: fit on {fit_on[k]} ({rows_used or 'reused'} rows, "
+    print(f"set {k} {arm}: fit on {fit_on[k]} ({rows_used or 'reused'} rows, read "
           f"{time.perf_counter() - t0:.0f} s): AP50 {cell['ap50']:.3f}, key Pd "
           f"{cell['key_pd']:.3f} ({cell['found']} of {cell['key']}) at "
           f"{cell['fa_per_image']:.3f} FA/img, threshold {cell['threshold']:.3f}", flush=True)
@@ -277,13 +283,23 @@ def main(argv: list[str] | None = None) -> int:
             atomic.write_bytes(cache, pickle.dumps(data[-1]))
         gts = [read_coco(g, check_files=False)[0] for g in args.gt]
         tasks = [(k, arm) for k in range(n) for arm in args.arms]
+        todo = [(k, arm) for k, arm in tasks if not (
+            args.reuse and (args.out / f"set{k}_{arm}" / "eval" / "metrics.json").exists())]
+        fits = sorted({(tuple(fit_on[k]), arm) for k, arm in todo})  # sets sharing a fit: once
+        pool = None
         if args.jobs > 1:  # the trees are grown without the GIL, the reads in a subprocess
             from concurrent.futures import ThreadPoolExecutor
 
-            with ThreadPoolExecutor(args.jobs) as pool:
-                done = list(pool.map(lambda t: held_out(*t, data, gts, args, fit_on), tasks))
-        else:
-            done = [held_out(k, arm, data, gts, args, fit_on) for k, arm in tasks]
+            pool = ThreadPoolExecutor(args.jobs)
+        run = pool.map if pool is not None else map
+        t0 = time.perf_counter()
+        fitted = dict(zip(fits, run(lambda f: fit_rescorer(*f, data, args.seed), fits),
+                          strict=True))
+        print(f"{len(fits)} rescorer(s) fitted in {time.perf_counter() - t0:.0f} s", flush=True)
+        done = list(run(lambda t: held_out(*t, data, gts, args, fit_on, fitted.get(
+            (tuple(fit_on[t[0]]), t[1])) if t in todo else None), tasks))
+        if pool is not None:
+            pool.shutdown()
         summary: dict[str, Any] = {"sets": [str(g) for g in args.gt], "fit_on": fit_on,
                                    "arms": {}}
         for arm in args.arms:

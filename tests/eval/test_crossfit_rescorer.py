@@ -88,6 +88,7 @@ def test_two_sets_read_each_with_the_others_rescorer(tmp_path, capsys):
     assert crossfit.main([*argv, "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "set 1 ground: fit on [0]" in printed and "ground - base" in printed
+    assert "4 rescorer(s) fitted" in printed  # two sets, two arms
     summary = json.loads((out / "summary.json").read_text())
     for arm in crossfit.ARMS:
         cells = summary["arms"][arm]["sets"]
@@ -104,7 +105,21 @@ def test_two_sets_read_each_with_the_others_rescorer(tmp_path, capsys):
         shutil.copy(out / name, again / name)
     assert crossfit.main([*argv, "--arms", "base", "--jobs", "2", "--reuse", "--against",
                           str(out / "summary.json"), "--out", str(again)]) == 0
-    assert "set 0 base: fit on [1] (reused rows" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "set 0 base: fit on [1] (reused rows" in printed
+    assert "1 rescorer(s) fitted" in printed  # set 1's alone
     twice = json.loads((again / "summary.json").read_text())
     assert twice["arms"]["base"]["found"] == summary["arms"]["base"]["found"]
     assert twice["against"]["diff"] == 0.0
+
+
+def test_sets_that_fit_on_the_same_others_share_one_fit(tmp_path, capsys):
+    sets = [_set_with_camera(tmp_path / f"s{k}", k) for k in range(3)]
+    out = tmp_path / "cf"
+    assert crossfit.main(["--gt", *[str(g) for g, _ in sets], "--raw", *[str(r) for _, r in sets],
+                          "--fit-on", "1,2", "0", "0", "--arms", "base", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "2 rescorer(s) fitted" in printed
+    assert "set 1 base: fit on [0]" in printed and "set 2 base: fit on [0]" in printed
+    first = json.loads((out / "set1_base" / "detections.json").read_text())
+    assert len(first) > 0
