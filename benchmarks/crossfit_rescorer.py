@@ -35,6 +35,7 @@ import pickle
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -283,23 +284,20 @@ def main(argv: list[str] | None = None) -> int:
             atomic.write_bytes(cache, pickle.dumps(data[-1]))
         gts = [read_coco(g, check_files=False)[0] for g in args.gt]
         tasks = [(k, arm) for k in range(n) for arm in args.arms]
-        todo = [(k, arm) for k, arm in tasks if not (
-            args.reuse and (args.out / f"set{k}_{arm}" / "eval" / "metrics.json").exists())]
+        todo = {(k, arm) for k, arm in tasks if not (
+            args.reuse and (args.out / f"set{k}_{arm}" / "eval" / "metrics.json").exists())}
         fits = sorted({(tuple(fit_on[k]), arm) for k, arm in todo})  # sets sharing a fit: once
-        pool = None
-        if args.jobs > 1:  # the trees are grown without the GIL, the reads in a subprocess
-            from concurrent.futures import ThreadPoolExecutor
-
-            pool = ThreadPoolExecutor(args.jobs)
-        run = pool.map if pool is not None else map
-        t0 = time.perf_counter()
-        fitted = dict(zip(fits, run(lambda f: fit_rescorer(*f, data, args.seed), fits),
-                          strict=True))
-        print(f"{len(fits)} rescorer(s) fitted in {time.perf_counter() - t0:.0f} s", flush=True)
-        done = list(run(lambda t: held_out(*t, data, gts, args, fit_on, fitted.get(
-            (tuple(fit_on[t[0]]), t[1])) if t in todo else None), tasks))
-        if pool is not None:
-            pool.shutdown()
+        # the trees are grown without the GIL, the reads in a subprocess
+        with ThreadPoolExecutor(args.jobs) as pool:
+            t0 = time.perf_counter()
+            fitted = dict(zip(fits, pool.map(lambda f: fit_rescorer(*f, data, args.seed), fits),
+                              strict=True))
+            print(f"{len(fits)} rescorer(s) fitted in {time.perf_counter() - t0:.0f} s",
+                  flush=True)
+            given = {(k, arm): fitted[(tuple(fit_on[k]), arm)] if (k, arm) in todo else None
+                     for k, arm in tasks}
+            done = list(pool.map(lambda t: held_out(*t, data, gts, args, fit_on, given[t]),
+                                 tasks))
         summary: dict[str, Any] = {"sets": [str(g) for g in args.gt], "fit_on": fit_on,
                                    "arms": {}}
         for arm in args.arms:
