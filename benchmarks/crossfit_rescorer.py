@@ -16,13 +16,18 @@ Arms:
 - ``ground``: those and two read against level ground from the image's ``camera`` record
   (:func:`ground_features`): each box read as a level circle whose near edge is its bottom
   row, the diameter its width gives and its height over the height that circle would span.
+- ``photo``: the base features and six read from the frame's pixels in and around the box
+  (:func:`photo_features`): whether its rows hold a crater's dark and bright bands, whether
+  those bands fill the box across, and whether they go on past its sides (a box on part of a
+  rim). The trees otherwise see no pixel.
 
     python benchmarks/crossfit_rescorer.py --gt V/annotations.shard-{0,1,2,3}-of-4.json \\
         --raw raw_q{0,1,2,3}/detections.json --fit-on 1,2 2,3 3,0 0,1 --out OUT
 
 Each set's replay through the box refiner is cached in ``OUT/set<k>.pkl`` (about 1.5 min a
-quarter) and each fit takes 3-4 min on one core (``--jobs 2`` runs two at once); sets that fit on
-the same others share one fit. A second model's reads of the same sets compare with ``--arms
+quarter; with the ``photo`` arm its pixel features are added to a cache that lacks them) and
+each fit takes 3-4 min on one core (``--jobs 2`` runs two at once); sets that fit on the same
+others share one fit. A second model's reads of the same sets compare with ``--arms
 base --against OUT/summary.json``: its pooled key craters paired with the first run's first arm.
 """
 
@@ -39,6 +44,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from key_pd_bins import read_eval
 from paired_key_pd import key_found, paired_bootstrap
@@ -49,11 +55,21 @@ from lunarnav_ml.errors import REPORTED_ERRORS, ConfigError, InputError
 from lunarnav_ml.eval.coco_metrics import coco_from_dict, matched
 from lunarnav_ml.eval.predict import to_coco_results
 from lunarnav_ml.geometry.boxrefine import CRATER_LABEL, BoxRefinedDetector, BoxRefiner
+from lunarnav_ml.geometry.boxrescore import FEATURES
 from lunarnav_ml.utils import atomic
 from lunarnav_ml.utils.jsonfile import read_json_file
 
-ARMS = ("base", "ground")
+ARMS = ("base", "ground", "photo")
 GROUND_FEATURES = ("ground_diameter_m", "ground_aspect")
+PHOTO_FEATURES = (
+    "photo_contrast",  # the box's mean against the bands over and under it, in their std
+    "photo_rows",  # std of the box's row means (a crater's shadow and lit wall), same unit
+    "photo_dark",  # share of the box's pixels under half the bands' mean (shadow)
+    "photo_sides",  # std of the row means beside the box, over the box's own (a part box)
+    "photo_fill",  # share of the box's eight column strips whose rows follow the box's
+    "photo_edges",  # mean |d/dy| in the box over that of the bands (rims are horizontal)
+)
+PHOTO_STRIPS = 8
 NO_GROUND = -1.0  # a box whose bottom row is at or over the horizon
 
 
@@ -88,6 +104,70 @@ def ground_features(xyxy: np.ndarray, camera: dict[str, float]) -> np.ndarray:
     out[ok, 0] = diameter
     out[ok, 1] = h[ok] / np.maximum(spans, 1e-3)
     return out
+
+
+def _row_std(block: np.ndarray) -> float:
+    """Std of a block's row means (0 for an empty block)."""
+    return float(block.mean(axis=1).std()) if block.size else 0.0
+
+
+def photo_features(gray: np.ndarray, xyxy: np.ndarray) -> np.ndarray:
+    """(N, len(PHOTO_FEATURES)) read from a gray frame in and around each xyxy box (px): the
+    bands over and under a box are as high as it (at least 2 px), those beside it a quarter of
+    its width (at least 2 px), all clipped to the frame. A box that covers no whole pixel reads
+    zeros."""
+    h_img, w_img = gray.shape
+    out = np.zeros((len(xyxy), len(PHOTO_FEATURES)), np.float32)
+    dy = np.abs(np.diff(gray, axis=0, append=gray[-1:]))
+    for i, (x0, y0, x1, y1) in enumerate(np.rint(np.asarray(xyxy, np.float64)).astype(int)):
+        x0, x1 = max(x0, 0), min(x1, w_img)
+        y0, y1 = max(y0, 0), min(y1, h_img)
+        w, h = x1 - x0, y1 - y0
+        if w < 1 or h < 1:
+            continue
+        hb, wb = max(h, 2), max(w // 4, 2)
+        box = gray[y0:y1, x0:x1]
+        bands = np.concatenate([gray[max(y0 - hb, 0):y0, x0:x1].ravel(),
+                                gray[y1:y1 + hb, x0:x1].ravel()])
+        mu, sd = (float(bands.mean()), float(bands.std())) if bands.size else (
+            float(box.mean()), 0.0)
+        rows = box.mean(axis=1)
+        own = float(rows.std())
+        sides = max(_row_std(gray[y0:y1, max(x0 - wb, 0):x0]), _row_std(gray[y0:y1, x1:x1 + wb]))
+        fill = 0.0
+        if w >= PHOTO_STRIPS and h >= 3 and own > 0:
+            strips = np.array_split(box, PHOTO_STRIPS, axis=1)
+            r = [np.corrcoef(s.mean(axis=1), rows)[0, 1] if s.mean(axis=1).std() > 0 else 0.0
+                 for s in strips]
+            fill = float(np.mean(np.asarray(r) > 0.5))
+        bands_dy = np.concatenate([dy[max(y0 - hb, 0):y0, x0:x1].ravel(),
+                                   dy[y1:y1 + hb, x0:x1].ravel()])
+        out[i] = ((float(box.mean()) - mu) / (sd + 1.0), own / (sd + 1.0),
+                  float((box < 0.5 * mu).mean()), sides / (own + 1.0), fill,
+                  float(dy[y0:y1, x0:x1].mean()) / (float(bands_dy.mean()) + 1.0
+                                                    if bands_dy.size else 1.0))
+    return out
+
+
+def with_photo(data: dict[str, Any], gt_path: Path, log=print) -> bool:
+    """Append :data:`PHOTO_FEATURES` to each crater row of a :func:`read_set` read that lacks
+    them (a cache written before they were); whether it did."""
+    frames = data["frames"]
+    n_done = len(FEATURES) + len(GROUND_FEATURES) + len(PHOTO_FEATURES)
+    if all(f["features"].shape[1] == n_done for f in frames):
+        return False
+    records = {r.image_id: r for r in read_coco(gt_path)[1]}
+    t0 = time.perf_counter()
+    for k, f in enumerate(frames):
+        crater = f["labels"] == CRATER_LABEL
+        photo = np.full((len(crater), len(PHOTO_FEATURES)), np.nan, np.float32)
+        gray = cv2.cvtColor(read_image(records[f["image_id"]]), cv2.COLOR_RGB2GRAY)
+        photo[crater] = photo_features(gray.astype(np.float32), f["boxes"][crater])
+        f["features"] = np.concatenate([f["features"], photo], axis=1)
+        if (k + 1) % 100 == 0 or k + 1 == len(frames):
+            log(f"  {gt_path.name}: pixel features of {k + 1}/{len(frames)} frames, "
+                f"{time.perf_counter() - t0:.0f} s")
+    return True
 
 
 def read_set(gt_path: Path, raw_path: Path, refiner: BoxRefiner, log=print) -> dict[str, Any]:
@@ -131,10 +211,12 @@ def rows(data: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     return x, data["status"]
 
 
-def columns(arm: str, n_features: int) -> np.ndarray:
-    """The feature columns an arm reads."""
-    base = n_features - len(GROUND_FEATURES)
-    return np.arange(base if arm == "base" else n_features)
+def columns(arm: str) -> np.ndarray:
+    """The feature columns an arm reads: the rescorer's, then the arm's own."""
+    base, ground = len(FEATURES), len(GROUND_FEATURES)
+    own = {"base": [], "ground": range(base, base + ground),
+           "photo": range(base + ground, base + ground + len(PHOTO_FEATURES))}[arm]
+    return np.concatenate([np.arange(base), np.asarray(own, np.int64)]).astype(np.int64)
 
 
 def rescored_results(data: dict[str, Any], model: Any, cols: np.ndarray, conf: float
@@ -178,7 +260,7 @@ def fit_rescorer(sets: tuple[int, ...], arm: str, data: list[dict[str, Any]],
     x = np.concatenate([t[0] for t in train])
     y = np.concatenate([t[1] for t in train])
     good = (y >= 0) & np.isfinite(x).all(axis=1)
-    cols = columns(arm, x.shape[1])
+    cols = columns(arm)
     return fit(x[good][:, cols], y[good], BoxRescorerConfig(seed=seed)), cols, int(good.sum())
 
 
@@ -282,6 +364,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"set {k}: {gt} through the box refiner", flush=True)
             data.append(read_set(gt, raw, refiner, log=lambda s: print(s, flush=True)))
             atomic.write_bytes(cache, pickle.dumps(data[-1]))
+        for k, gt in enumerate(args.gt if "photo" in args.arms else []):
+            if with_photo(data[k], gt, log=lambda s: print(s, flush=True)):
+                atomic.write_bytes(args.out / f"set{k}.pkl", pickle.dumps(data[k]))
         gts = [read_coco(g, check_files=False)[0] for g in args.gt]
         tasks = [(k, arm) for k in range(n) for arm in args.arms]
         todo = {(k, arm) for k, arm in tasks if not (

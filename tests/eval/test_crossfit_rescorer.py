@@ -88,7 +88,8 @@ def test_two_sets_read_each_with_the_others_rescorer(tmp_path, capsys):
     assert crossfit.main([*argv, "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "set 1 ground: fit on [0]" in printed and "ground - base" in printed
-    assert "4 rescorer(s) fitted" in printed  # two sets, two arms
+    assert "set 1 photo: fit on [0]" in printed
+    assert f"{2 * len(crossfit.ARMS)} rescorer(s) fitted" in printed  # two sets, every arm
     summary = json.loads((out / "summary.json").read_text())
     for arm in crossfit.ARMS:
         cells = summary["arms"][arm]["sets"]
@@ -123,3 +124,37 @@ def test_sets_that_fit_on_the_same_others_share_one_fit(tmp_path, capsys):
     assert "set 1 base: fit on [0]" in printed and "set 2 base: fit on [0]" in printed
     first = json.loads((out / "set1_base" / "detections.json").read_text())
     assert len(first) > 0
+
+
+def _edge_on_crater(width=200, height=120):
+    """A gray frame (level 120) with an edge-on crater: a dark band (shadowed wall, 20) over a
+    bright one (lit wall, 220), 8 rows each, across columns 60-140."""
+    gray = np.full((height, width), 120.0, np.float32)
+    gray[50:58, 60:140] = 20.0
+    gray[58:66, 60:140] = 220.0
+    return gray
+
+
+def test_a_box_on_a_whole_edge_on_crater_reads_its_bands_and_no_sides():
+    gray = _edge_on_crater()
+    whole, part, flat = crossfit.photo_features(
+        gray, np.array([[60, 50, 140, 66], [60, 50, 100, 66], [60, 80, 140, 96]], np.float64))
+    names = crossfit.PHOTO_FEATURES
+    f = dict(zip(names, whole, strict=True))
+    assert f["photo_rows"] > 10 and f["photo_dark"] == pytest.approx(0.5)
+    assert f["photo_fill"] == 1.0 and f["photo_sides"] < 0.05 and f["photo_edges"] > 2
+    g = dict(zip(names, part, strict=True))  # the left half: its bands go on past its right side
+    assert g["photo_sides"] > 0.9 and g["photo_rows"] == pytest.approx(f["photo_rows"])
+    h = dict(zip(names, flat, strict=True))  # plain ground
+    assert h["photo_rows"] == h["photo_dark"] == h["photo_fill"] == h["photo_edges"] == 0
+    # the crater's bands over half the box's width: half its strips follow them
+    half = crossfit.photo_features(gray, np.array([[100, 50, 180, 66]], np.float64))[0]
+    assert dict(zip(names, half, strict=True))["photo_fill"] == pytest.approx(0.5)
+
+
+def test_boxes_at_and_off_the_frame_edge_read_finite_or_zero():
+    gray = _edge_on_crater()
+    boxes = np.array([[-10, -5, 30, 4], [190, 110, 260, 140], [50, 50, 50.2, 60]], np.float64)
+    out = crossfit.photo_features(gray, boxes)
+    assert np.isfinite(out).all()
+    assert out[2].tolist() == [0.0] * len(crossfit.PHOTO_FEATURES)  # no whole pixel
