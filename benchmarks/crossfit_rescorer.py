@@ -41,6 +41,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -126,9 +127,11 @@ def photo_features(gray: np.ndarray, xyxy: np.ndarray) -> np.ndarray:
         if w < 1 or h < 1:
             continue
         hb, wb = max(h, 2), max(w // 4, 2)
-        box = gray[y0:y1, x0:x1]
-        bands = np.concatenate([gray[max(y0 - hb, 0):y0, x0:x1].ravel(),
-                                gray[y1:y1 + hb, x0:x1].ravel()])
+        inside = np.s_[y0:y1, x0:x1]
+        over_under = (np.s_[max(y0 - hb, 0):y0, x0:x1], np.s_[y1:y1 + hb, x0:x1])
+        box = gray[inside]
+        bands = np.concatenate([gray[b].ravel() for b in over_under])
+        bands_dy = np.concatenate([dy[b].ravel() for b in over_under])
         mu, sd = (float(bands.mean()), float(bands.std())) if bands.size else (
             float(box.mean()), 0.0)
         rows = box.mean(axis=1)
@@ -136,17 +139,24 @@ def photo_features(gray: np.ndarray, xyxy: np.ndarray) -> np.ndarray:
         sides = max(_row_std(gray[y0:y1, max(x0 - wb, 0):x0]), _row_std(gray[y0:y1, x1:x1 + wb]))
         fill = 0.0
         if w >= PHOTO_STRIPS and h >= 3 and own > 0:
-            strips = np.array_split(box, PHOTO_STRIPS, axis=1)
-            r = [np.corrcoef(s.mean(axis=1), rows)[0, 1] if s.mean(axis=1).std() > 0 else 0.0
-                 for s in strips]
-            fill = float(np.mean(np.asarray(r) > 0.5))
-        bands_dy = np.concatenate([dy[max(y0 - hb, 0):y0, x0:x1].ravel(),
-                                   dy[y1:y1 + hb, x0:x1].ravel()])
+            profiles = [s.mean(axis=1) for s in np.array_split(box, PHOTO_STRIPS, axis=1)]
+            fill = float(np.mean([p.std() > 0 and np.corrcoef(p, rows)[0, 1] > 0.5
+                                  for p in profiles]))
         out[i] = ((float(box.mean()) - mu) / (sd + 1.0), own / (sd + 1.0),
                   float((box < 0.5 * mu).mean()), sides / (own + 1.0), fill,
-                  float(dy[y0:y1, x0:x1].mean()) / (float(bands_dy.mean()) + 1.0
-                                                    if bands_dy.size else 1.0))
+                  float(dy[inside].mean()) / (float(bands_dy.mean()) + 1.0 if bands_dy.size
+                                              else 1.0))
     return out
+
+
+def frame_photo(image: np.ndarray, frame: dict[str, Any]) -> np.ndarray:
+    """A read frame's :data:`PHOTO_FEATURES` rows from its RGB ``image`` (NaN for the boxes
+    that are not craters)."""
+    crater = frame["labels"] == CRATER_LABEL
+    photo = np.full((len(crater), len(PHOTO_FEATURES)), np.nan, np.float32)
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    photo[crater] = photo_features(gray, frame["boxes"][crater])
+    return photo
 
 
 def with_photo(data: dict[str, Any], gt_path: Path, log=print) -> bool:
@@ -159,10 +169,7 @@ def with_photo(data: dict[str, Any], gt_path: Path, log=print) -> bool:
     records = {r.image_id: r for r in read_coco(gt_path)[1]}
     t0 = time.perf_counter()
     for k, f in enumerate(frames):
-        crater = f["labels"] == CRATER_LABEL
-        photo = np.full((len(crater), len(PHOTO_FEATURES)), np.nan, np.float32)
-        gray = cv2.cvtColor(read_image(records[f["image_id"]]), cv2.COLOR_RGB2GRAY)
-        photo[crater] = photo_features(gray.astype(np.float32), f["boxes"][crater])
+        photo = frame_photo(read_image(records[f["image_id"]]), f)
         f["features"] = np.concatenate([f["features"], photo], axis=1)
         if (k + 1) % 100 == 0 or k + 1 == len(frames):
             log(f"  {gt_path.name}: pixel features of {k + 1}/{len(frames)} frames, "
@@ -170,9 +177,11 @@ def with_photo(data: dict[str, Any], gt_path: Path, log=print) -> bool:
     return True
 
 
-def read_set(gt_path: Path, raw_path: Path, refiner: BoxRefiner, log=print) -> dict[str, Any]:
+def read_set(gt_path: Path, raw_path: Path, refiner: BoxRefiner, photo: bool = False,
+             log=print) -> dict[str, Any]:
     """Every frame of ``gt_path`` through the box refiner (no rescorer), with each crater box's
-    rescorer and ground features and whether it matches a countable crater."""
+    rescorer and ground features (and with ``photo`` its pixel features, from the same read of
+    the frame) and whether it matches a countable crater."""
     gt, records = read_coco(gt_path)
     cameras = {im["id"]: im.get("camera") for im in gt.get("images", [])}
     reads = raw_reads(raw_path)
@@ -186,14 +195,17 @@ def read_set(gt_path: Path, raw_path: Path, refiner: BoxRefiner, log=print) -> d
                 <= set(camera):
             raise InputError(f"{gt_path}: image {record.image_id}: no camera record with fx, "
                              f"fy, cy, pitch_deg and height_m")
-        out = detector.refine(read_image(record), reads.get(record.image_id, empty), 0.6,
-                              features=True)
+        image = read_image(record)
+        out = detector.refine(image, reads.get(record.image_id, empty), 0.6, features=True)
         crater = out["labels"] == CRATER_LABEL
         ground = np.full((len(crater), 2), np.nan, np.float32)
         ground[crater] = ground_features(out["boxes"][crater].astype(np.float64), camera)
-        frames.append({"image_id": record.image_id, "boxes": out["boxes"],
-                       "scores": out["scores"], "labels": out["labels"],
-                       "features": np.concatenate([out["rescore_features"], ground], axis=1)})
+        frame = {"image_id": record.image_id, "boxes": out["boxes"], "scores": out["scores"],
+                 "labels": out["labels"]}
+        frame["features"] = np.concatenate([out["rescore_features"], ground]
+                                           + ([frame_photo(image, frame)] if photo else []),
+                                           axis=1)
+        frames.append(frame)
         if (k + 1) % 100 == 0 or k + 1 == len(records):
             log(f"  {gt_path.name}: {k + 1}/{len(records)} frames, "
                 f"{time.perf_counter() - t0:.0f} s")
@@ -216,7 +228,7 @@ def columns(arm: str) -> np.ndarray:
     base, ground = len(FEATURES), len(GROUND_FEATURES)
     own = {"base": [], "ground": range(base, base + ground),
            "photo": range(base + ground, base + ground + len(PHOTO_FEATURES))}[arm]
-    return np.concatenate([np.arange(base), np.asarray(own, np.int64)]).astype(np.int64)
+    return np.concatenate([np.arange(base), np.asarray(own, np.int64)])
 
 
 def rescored_results(data: dict[str, Any], model: Any, cols: np.ndarray, conf: float
@@ -355,18 +367,18 @@ def main(argv: list[str] | None = None) -> int:
                                  f"run's {[str(g) for g in args.gt]}")
         args.out.mkdir(parents=True, exist_ok=True)
         refiner = BoxRefiner(args.box_refiner)
-        data = []
+        data, photo = [], "photo" in args.arms
+        log = partial(print, flush=True)
         for k, (gt, raw) in enumerate(zip(args.gt, args.raw, strict=True)):
             cache = args.out / f"set{k}.pkl"
-            if cache.exists():
+            if cache.exists():  # one written before the pixel features gets them now
                 data.append(pickle.loads(cache.read_bytes()))
+                if photo and with_photo(data[-1], gt, log=log):
+                    atomic.write_bytes(cache, pickle.dumps(data[-1]))
                 continue
             print(f"set {k}: {gt} through the box refiner", flush=True)
-            data.append(read_set(gt, raw, refiner, log=lambda s: print(s, flush=True)))
+            data.append(read_set(gt, raw, refiner, photo=photo, log=log))
             atomic.write_bytes(cache, pickle.dumps(data[-1]))
-        for k, gt in enumerate(args.gt if "photo" in args.arms else []):
-            if with_photo(data[k], gt, log=lambda s: print(s, flush=True)):
-                atomic.write_bytes(args.out / f"set{k}.pkl", pickle.dumps(data[k]))
         gts = [read_coco(g, check_files=False)[0] for g in args.gt]
         tasks = [(k, arm) for k in range(n) for arm in args.arms]
         todo = {(k, arm) for k, arm in tasks if not (

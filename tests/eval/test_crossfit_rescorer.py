@@ -158,3 +158,30 @@ def test_boxes_at_and_off_the_frame_edge_read_finite_or_zero():
     out = crossfit.photo_features(gray, boxes)
     assert np.isfinite(out).all()
     assert out[2].tolist() == [0.0] * len(crossfit.PHOTO_FEATURES)  # no whole pixel
+
+
+def test_a_cache_without_pixel_features_gets_them_as_a_fresh_read_has_them(tmp_path, capsys):
+    import pickle
+
+    (g0, r0), (g1, r1) = (_set_with_camera(tmp_path / f"s{k}", k) for k in (0, 1))
+    argv = ["--gt", str(g0), str(g1), "--raw", str(r0), str(r1), "--fit-on", "1", "0",
+            "--arms", "base", "photo"]
+    fresh = tmp_path / "fresh"
+    assert crossfit.main([*argv, "--out", str(fresh)]) == 0
+    old = tmp_path / "old"  # the caches as a run before the pixel features wrote them
+    old.mkdir()
+    n_old = len(crossfit.FEATURES) + len(crossfit.GROUND_FEATURES)
+    for k in (0, 1):
+        data = pickle.loads((fresh / f"set{k}.pkl").read_bytes())
+        for f in data["frames"]:
+            f["features"] = f["features"][:, :n_old]
+        (old / f"set{k}.pkl").write_bytes(pickle.dumps(data))
+    capsys.readouterr()
+    assert crossfit.main([*argv, "--out", str(old)]) == 0
+    assert "pixel features of 4/4 frames" in capsys.readouterr().out
+    for k in (0, 1):
+        a, b = (pickle.loads((d / f"set{k}.pkl").read_bytes()) for d in (fresh, old))
+        for fa, fb in zip(a["frames"], b["frames"], strict=True):
+            np.testing.assert_array_equal(fa["features"], fb["features"])
+    assert (json.loads((old / "summary.json").read_text())["arms"]["photo"]["found"]
+            == json.loads((fresh / "summary.json").read_text())["arms"]["photo"]["found"])
